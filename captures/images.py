@@ -1,0 +1,73 @@
+"""Image files in and out through OpenImageIO; linear float32 (H, W, 3) arrays in memory."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+
+from .peer import CaptureError
+
+
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    """Linear Rec.709 -> sRGB-encoded values in [0, 1] (clipped)."""
+    x = np.clip(linear, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def srgb_decode(encoded: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values in [0, 1] -> linear."""
+    x = np.asarray(encoded, dtype=np.float32)
+    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Pixels as float32 (H, W, C) exactly as stored (no colour decoding)."""
+    path = Path(path)
+    if not path.exists():
+        raise CaptureError(f"{path}: no such image file")
+    buf = oiio.ImageBuf(str(path))
+    if buf.has_error:
+        raise CaptureError(f"{path}: cannot read image ({buf.geterror()})")
+    pixels = buf.get_pixels(oiio.FLOAT)
+    if pixels is None or buf.has_error:
+        raise CaptureError(f"{path}: cannot decode image ({buf.geterror()})")
+    return np.asarray(pixels, dtype=np.float32)
+
+
+def write_image(path: str | Path, linear: np.ndarray) -> Path:
+    """Write a linear float image: EXR (float, as is), PNG/TIFF (16-bit sRGB) or JPEG (8-bit sRGB).
+
+    The file appears whole or not at all (written to a temporary file, then renamed).
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    data = np.ascontiguousarray(linear, dtype=np.float32)
+    if suffix == ".exr":
+        fmt = oiio.FLOAT
+    elif suffix in (".png", ".tif", ".tiff"):
+        fmt, data = oiio.UINT16, srgb_encode(data).astype(np.float32)
+    elif suffix in (".jpg", ".jpeg"):
+        fmt, data = oiio.UINT8, srgb_encode(data).astype(np.float32)
+    else:
+        raise CaptureError(f"{path}: unsupported image type {suffix!r}; use .exr, .png, .tif or .jpg")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    spec = oiio.ImageSpec(data.shape[1], data.shape[0], data.shape[2], fmt)
+    fd, tmp = tempfile.mkstemp(suffix=suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        out = oiio.ImageOutput.create(tmp)
+        if out is None or not out.open(tmp, spec):
+            raise CaptureError(f"{path}: cannot write ({oiio.geterror()})")
+        ok = out.write_image(data)
+        out.close()
+        if not ok:
+            raise CaptureError(f"{path}: cannot write ({out.geterror()})")
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path

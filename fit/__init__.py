@@ -1,0 +1,1 @@
+"""How parameters are recovered: scene assembly, rendering, the CLI (the fitter comes next)."""

@@ -1,0 +1,109 @@
+"""The `layerfit` command line."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from .variant import BackendError, select_variant
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
+console = Console(stderr=True)
+
+VariantOption = Annotated[
+    str | None,
+    typer.Option("--variant", envvar="LAYERFIT_VARIANT", help="Mitsuba variant (default llvm_ad_rgb)."),
+]
+
+
+def _start(variant: str | None) -> None:
+    """Select the variant and register the plugins, or stop with one line."""
+    try:
+        select_variant(variant)
+    except BackendError as err:
+        console.print(f"[red]error:[/] {err}", highlight=False)
+        raise typer.Exit(1) from None
+    import materials
+
+    materials.register()
+
+
+def _progress() -> Progress:
+    return Progress(
+        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+        console=console, transient=False,
+    )
+
+
+@app.command()
+def render(
+    config: Annotated[Path, typer.Argument(help="Render config (TOML): [scene], [material], [render].")],
+    out: Annotated[Path, typer.Option(help="Output PNG (sRGB); a linear EXR is written beside it.")] = Path(
+        "out/render.png"
+    ),
+    spp: Annotated[int | None, typer.Option(help="Samples per pixel (overrides the config).")] = None,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    variant: VariantOption = None,
+) -> None:
+    """Render a config's scene with its material: a linear EXR and an sRGB PNG per view."""
+    from captures import CaptureError
+    from captures.images import write_image
+
+    from .config import load_render_config
+
+    try:
+        cfg = load_render_config(config)
+    except CaptureError as err:
+        console.print(f"[red]error:[/] {err}", highlight=False)
+        raise typer.Exit(2) from None
+    _start(variant)
+    import mitsuba as mi
+
+    from .render import render as render_image
+    from .scene import scene_dict
+
+    spp = spp or cfg.spp
+    views = len(cfg.scene.cameras)
+    with _progress() as bar:
+        for view in range(views):
+            task = bar.add_task(f"view {view}", total=spp)
+            scene = mi.load_dict(scene_dict(cfg.scene, cfg.material, view, spp))
+            image = render_image(scene, spp, seed, lambda n: bar.update(task, completed=n))
+            stem = out.with_suffix("") if views == 1 else out.with_name(f"{out.stem}_{view:02d}")
+            for path in (stem.with_suffix(".exr"), stem.with_suffix(out.suffix or ".png")):
+                write_image(path, image)
+                console.print(f"wrote {path}")
+
+
+@app.command()
+def bench(
+    spp: Annotated[int, typer.Option(help="Samples per pixel of each timed render.")] = 64,
+    repeats: Annotated[int, typer.Option(help="Timed renders per BSDF (the median is reported).")] = 7,
+    out: Annotated[Path | None, typer.Option(help="Also write the table (Markdown) here.")] = None,
+    variant: VariantOption = None,
+) -> None:
+    """Speed table: render time of the glaze vs Mitsuba's `principled` on the same sphere scene."""
+    _start(variant)
+    from .bench import bsdf_speed_table
+
+    with _progress() as bar:
+        table = bsdf_speed_table(spp=spp, repeats=repeats, progress=bar)
+    console.print(table.rich())
+    if out is not None:
+        out.write_text(table.markdown())
+        console.print(f"wrote {out}")
+
+
+def main() -> None:
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        app()
+    except BackendError as err:  # raised outside _start, e.g. by a library call
+        console.print(f"[red]error:[/] {err}", highlight=False)
+        sys.exit(1)

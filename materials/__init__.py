@@ -1,0 +1,22 @@
+"""What the object is made of: Mitsuba plugins written in Python, and their parameters.
+
+Importing this package changes nothing; `register()` adds the plugins to the current Mitsuba
+variant (the caller chooses the variant; this package never sets one).
+"""
+
+from .params import GLAZE_PARAMS, OREN_NAYAR_PARAMS, ParamSpec
+
+__all__ = ["GLAZE_PARAMS", "OREN_NAYAR_PARAMS", "ParamSpec", "register"]
+
+
+def register() -> None:
+    """Register `oren_nayar` and `glaze` with the current Mitsuba variant."""
+    import mitsuba as mi
+
+    if mi.variant() is None:
+        raise RuntimeError("materials.register(): set a Mitsuba variant first (mi.set_variant)")
+    from .glaze import Glaze
+    from .oren_nayar import OrenNayar
+
+    mi.register_bsdf("oren_nayar", OrenNayar)
+    mi.register_bsdf("glaze", Glaze)

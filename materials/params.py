@@ -1,0 +1,112 @@
+"""One declaration per fittable value: key, default, bounds, transform, unit and doc.
+
+Everything else (plugin defaults and validation, ``traverse`` keys, solver transforms, preset keys,
+exports) is derived from these declarations. Transforms are written against an array namespace
+(``numpy`` by default; the fitter passes ``jax.numpy``), so this module never imports JAX.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+Transform = Literal["sigmoid", "identity"]
+Kind = Literal["float", "rgb"]
+
+#: A fit that starts at a bound starts this share of the range inside it (DESIGN.md).
+BOUND_MARGIN = 1e-3
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """A fittable material parameter.
+
+    **Arguments:**
+
+    - `key`: name inside its plugin (`roughness`); the full key is `<layer>.<key>`.
+    - `default`: value used when a config does not set it (a float, or an RGB triple).
+    - `lower`, `upper`: closed bounds, per channel for RGB values.
+    - `transform`: how solvers see the value unconstrained (`sigmoid` maps (lower, upper) to R).
+    - `unit`: physical unit or `""`.
+    - `doc`: one line for users.
+    - `kind`: `float` (a scalar) or `rgb` (a texture whose constant value is an RGB triple).
+    """
+
+    key: str
+    default: float | tuple[float, float, float]
+    lower: float
+    upper: float
+    transform: Transform
+    unit: str
+    doc: str
+    kind: Kind = "float"
+
+    def __post_init__(self):
+        if not self.lower < self.upper:
+            raise ValueError(f"ParamSpec {self.key}: lower {self.lower} must be < upper {self.upper}")
+        values = np.atleast_1d(np.asarray(self.default, dtype=float))
+        if np.any(values < self.lower) or np.any(values > self.upper):
+            raise ValueError(f"ParamSpec {self.key}: default {self.default} is outside the bounds")
+
+    def check(self, value, where: str) -> None:
+        """Raise a `ValueError` naming `where` and the fix when `value` is outside the bounds."""
+        values = np.atleast_1d(np.asarray(value, dtype=float))
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f"{where}: {self.key} = {value} is not finite")
+        if np.any(values < self.lower) or np.any(values > self.upper):
+            raise ValueError(
+                f"{where}: {self.key} = {value} is outside its bounds [{self.lower}, {self.upper}]"
+                f" ({self.doc}); choose a value inside them"
+            )
+
+    def to_unconstrained(self, value, xp=np):
+        """Map a bounded value to the solver's unconstrained space (values at a bound move
+        `BOUND_MARGIN` of the range inside it)."""
+        if self.transform == "identity":
+            return xp.asarray(value)
+        span = self.upper - self.lower
+        t = (xp.asarray(value) - self.lower) / span
+        t = xp.clip(t, BOUND_MARGIN, 1.0 - BOUND_MARGIN)
+        return xp.log(t) - xp.log1p(-t)
+
+    def from_unconstrained(self, u, xp=np):
+        """Inverse of `to_unconstrained`."""
+        if self.transform == "identity":
+            return xp.asarray(u)
+        return self.lower + (self.upper - self.lower) / (1.0 + xp.exp(-xp.asarray(u)))
+
+
+def spec_table(*specs: ParamSpec) -> dict[str, ParamSpec]:
+    """A plugin's declarations keyed by name, refusing duplicates."""
+    table: dict[str, ParamSpec] = {}
+    for spec in specs:
+        if spec.key in table:
+            raise ValueError(f"parameter {spec.key} is declared twice")
+        table[spec.key] = spec
+    return table
+
+
+# Shared declarations ------------------------------------------------------------------------------
+
+SIGMA = ParamSpec(
+    "sigma", 0.0, 0.0, 1.0, "sigmoid", "rad",
+    "Oren-Nayar facet slope standard deviation; 0 is Lambert",
+)
+REFLECTANCE = ParamSpec(
+    "reflectance", (0.5, 0.5, 0.5), 0.0, 1.0, "sigmoid", "",
+    "diffuse albedo, linear RGB", kind="rgb",
+)
+PIGMENT = ParamSpec(
+    "pigment", (0.5, 0.5, 0.5), 0.0, 1.0, "sigmoid", "",
+    "colour of the pigment under the glaze, linear RGB", kind="rgb",
+)
+ROUGHNESS = ParamSpec(
+    "roughness", 0.1, 0.01, 1.0, "sigmoid", "",
+    "Beckmann alpha of the glaze's specular lobe (other tools' roughness r maps to alpha = r^2)",
+)
+IOR = ParamSpec("ior", 1.5, 1.01, 3.0, "sigmoid", "", "index of refraction of the glaze coat")
+
+OREN_NAYAR_PARAMS = spec_table(REFLECTANCE, SIGMA)
+GLAZE_PARAMS = spec_table(PIGMENT, SIGMA, ROUGHNESS, IOR)

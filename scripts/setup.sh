@@ -1,0 +1,47 @@
+#!/usr/bin/env bash
+# Set up layerfit on Debian/Ubuntu: libLLVM >= 16 (Dr.Jit's CPU backend), python3-venv, and a .venv
+# with the project installed (editable, with test tools). Safe to run again; fast when nothing changed.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+as_root() { if [ "$(id -u)" = 0 ]; then "$@"; elif command -v sudo >/dev/null; then sudo "$@"; else
+  echo "setup: need root (or sudo) to run: $*" >&2; exit 1; fi; }
+
+have_llvm() {  # any libLLVM >= 16 known to the dynamic linker or in the usual folders
+  { ldconfig -p 2>/dev/null | grep -o 'libLLVM[^ ]*'; ls /usr/lib/*/libLLVM* /usr/lib/llvm-*/lib/libLLVM* 2>/dev/null; } |
+    grep -oE 'libLLVM(-[0-9]+|\.so\.[0-9]+)' | grep -oE '[0-9]+' | awk '$1 >= 16 {found=1} END {exit !found}'
+}
+
+apt_updated=0
+apt_install() {
+  [ "$apt_updated" = 1 ] || { as_root apt-get update -qq; apt_updated=1; }
+  as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@" >/dev/null
+}
+
+if ! have_llvm; then
+  command -v apt-get >/dev/null || { echo "setup: install libLLVM >= 16 (e.g. libllvm19) by hand" >&2; exit 1; }
+  echo "setup: installing libLLVM (Dr.Jit's CPU backend needs >= 16)"
+  installed=0
+  for v in 19 18 17 16; do
+    if apt_install "libllvm$v" 2>/dev/null; then installed=1; break; fi
+  done
+  [ "$installed" = 1 ] || { echo "setup: no libllvm16..19 package found; install libLLVM >= 16" >&2; exit 1; }
+fi
+
+PY=${PYTHON:-python3}
+"$PY" -c 'import sys; assert sys.version_info >= (3, 11), sys.version' 2>/dev/null ||
+  { echo "setup: layerfit needs Python >= 3.11 ($PY is older or missing); set PYTHON=..." >&2; exit 1; }
+if [ ! -x .venv/bin/python ]; then
+  if ! "$PY" -m venv --help >/dev/null 2>&1 || ! "$PY" -c 'import ensurepip' 2>/dev/null; then
+    echo "setup: installing python3-venv"; apt_install python3-venv
+  fi
+  "$PY" -m venv .venv
+fi
+
+stamp=.venv/.layerfit-installed
+if [ ! -f "$stamp" ] || ! cmp -s pyproject.toml "$stamp"; then
+  echo "setup: installing Python packages into .venv (about a minute the first time)"
+  .venv/bin/python -m pip install -q --upgrade pip
+  .venv/bin/python -m pip install -q -e '.[test]'
+  cp pyproject.toml "$stamp"
+fi

@@ -1,0 +1,7 @@
+#!/usr/bin/env bash
+# Set up, then run the default test suite (under 10 minutes on 2 cores). `--slow` runs the heavy cases.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup.sh
+if [ "${1:-}" = "--slow" ]; then shift; exec .venv/bin/python -m pytest -m slow "$@"; fi
+exec .venv/bin/python -m pytest "$@"
