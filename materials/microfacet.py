@@ -16,7 +16,9 @@ def beckmann_d(cos_h, alpha):
     """Beckmann NDF `exp(((n.h)^2 - 1) / (a^2 (n.h)^2)) / (pi a^2 (n.h)^4)`, 0 below the horizon."""
     c2 = dr.maximum(cos_h * cos_h, _TINY)
     a2 = alpha * alpha
-    d = dr.exp((c2 - 1.0) / (a2 * c2)) / (dr.pi * a2 * c2 * c2)
+    # One exp of a log-space sum: the separate factor 1 / (pi a^2 c^4) overflows float32 (and its
+    # derivative gives 0 * inf = NaN) near the horizon at small alpha, where D itself is 0.
+    d = dr.exp((c2 - 1.0) / (a2 * c2) - dr.log(dr.pi * a2) - 2.0 * dr.log(c2))
     return dr.select(cos_h > 0, d, 0.0)
 
 

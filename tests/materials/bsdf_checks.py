@@ -77,9 +77,14 @@ def ad_derivative(bsdf, key: str, value, fn, channel: int | None = None) -> np.n
     return grad
 
 
-def fd_derivative(bsdf, key: str, value, fn, h: float, channel: int | None = None) -> np.ndarray:
-    """Central finite difference of `fn(bsdf)` with step `h`, computed in float64 from two renders
-    of the float32 BSDF."""
+def fd_derivative(bsdf, key: str, value, fn, h: float, channel: int | None = None):
+    """Richardson-extrapolated central difference of `fn(bsdf)` (steps `h` and `h / 2`, truncation
+    error O(h^4)) and a bound on its rounding error.
+
+    The BSDF computes in float32, so each value carries a relative rounding error of a few tens of
+    ulps; divided by the step that bounds how far the quotient can be from the truth besides
+    truncation. Returns `(derivative, rounding_error)`, both float64 arrays.
+    """
     def at(offset):
         v = np.array(value, dtype=float)
         if channel is None:
@@ -89,9 +94,26 @@ def fd_derivative(bsdf, key: str, value, fn, h: float, channel: int | None = Non
         set_param(bsdf, key, v.tolist() if v.ndim else float(v))
         return rgb(fn(bsdf)).astype(np.float64)
 
-    grad = (at(h) - at(-h)) / (2 * h)
+    values = {k: at(k * h / 2) for k in (-2, -1, 1, 2)}
     set_param(bsdf, key, value)
-    return grad
+    coarse = (values[2] - values[-2]) / (2 * h)
+    fine = (values[1] - values[-1]) / h
+    size = np.max(np.abs(np.stack(list(values.values()))), axis=0)
+    rounding = 3 * 64 * np.finfo(np.float32).eps * size / h
+    return (4 * fine - coarse) / 3, rounding
+
+
+def assert_derivative(ad, fd, rounding, rtol: float, what: str) -> None:
+    """AD equals FD within `rtol` plus FD's rounding error, plus 1e-5 of the largest derivative
+    (FD's truncation error grows in a lobe's far tail, where the values are ~1e-8 of the peak).
+    So where the value measurably depends on the parameter, AD cannot be silently zero."""
+    assert np.all(np.isfinite(ad)), f"{what}: non-finite derivative"
+    bound = rtol * np.abs(fd) + rounding + 1e-5 * np.abs(fd).max() + 1e-12
+    bad = np.abs(ad - fd) > bound
+    assert not bad.any(), (
+        f"{what}: {bad.sum()} of {bad.size} derivatives differ, e.g. AD {ad[bad][:3]} vs FD "
+        f"{fd[bad][:3]} (allowed {bound[bad][:3]})"
+    )
 
 
 def albedo(bsdf, theta_deg: float, n: int = 1 << 18, seed: int = 0) -> np.ndarray:

@@ -175,9 +175,27 @@ def test_oren_nayar_sigma0_equals_diffuse():
                                atol=1e-7)
 
 
+def oren_nayar_reference(wi, wo, sigma):
+    """Textbook qualitative Oren-Nayar factor from angles (float64)."""
+    theta_i, theta_o = np.arccos(wi[:, 2]), np.arccos(wo[:, 2])
+    dphi = np.arctan2(wi[:, 1], wi[:, 0]) - np.arctan2(wo[:, 1], wo[:, 0])
+    a = 1 - 0.5 * sigma**2 / (sigma**2 + 0.33)
+    b = 0.45 * sigma**2 / (sigma**2 + 0.09)
+    alpha, beta = np.maximum(theta_i, theta_o), np.minimum(theta_i, theta_o)
+    return a + b * np.maximum(0, np.cos(dphi)) * np.sin(alpha) * np.tan(beta)
+
+
+@pytest.mark.parametrize("sigma", [0.2, 0.6, 1.0])
+def test_oren_nayar_follows_the_formula(sigma):
+    bsdf = mi.load_dict({"type": "oren_nayar", "sigma": sigma, "reflectance": PIGMENT})
+    wi, wo = hemisphere(1024, seed=13, min_cos=0.01), hemisphere(1024, seed=14, min_cos=0.01)
+    expected = oren_nayar_reference(wi, wo, sigma)[:, None] * PIGMENT["value"] / np.pi * wo[:, 2:]
+    np.testing.assert_allclose(eval_value(bsdf, wi, wo), expected, rtol=2e-4)
+
+
 def test_glaze_lobes_follow_the_formula():
     """Spot values against a float64 numpy transcription of DESIGN.md's formulas."""
-    alpha, ior, pig = 0.3, 1.5, np.array([0.2, 0.45, 0.8])
+    alpha, ior, sigma, pig = 0.3, 1.5, 0.5, np.array([0.2, 0.45, 0.8])
     wi, wo = hemisphere(512, seed=11, min_cos=0.05), hemisphere(512, seed=12, min_cos=0.05)
     h = (wi + wo) / np.linalg.norm(wi + wo, axis=1, keepdims=True)
     nh, nv, nl, vh = h[:, 2], wi[:, 2], wo[:, 2], np.sum(wi * h, axis=1)
@@ -186,13 +204,13 @@ def test_glaze_lobes_follow_the_formula():
     f0 = ((ior - 1) / (ior + 1)) ** 2
     fr = lambda c: f0 + (1 - f0) * (1 - c) ** 5  # noqa: E731
     spec = d * g / (4 * nl * nv)
+    rho = pig / np.pi * oren_nayar_reference(wi, wo, sigma)[:, None]
     for coupling, f in (
-        ("paper", (1 - fr(nv))[:, None] * pig / np.pi + (fr(nv) * spec)[:, None]),
-        ("reciprocal", ((1 - fr(nl)) * (1 - fr(nv)))[:, None] * pig / np.pi
-         + (fr(vh) * spec)[:, None]),
+        ("paper", (1 - fr(nv))[:, None] * rho + (fr(nv) * spec)[:, None]),
+        ("reciprocal", ((1 - fr(nl)) * (1 - fr(nv)))[:, None] * rho + (fr(vh) * spec)[:, None]),
     ):
         bsdf = mi.load_dict({"type": "glaze", "coupling": coupling, "roughness": alpha, "ior": ior,
-                             "pigment": PIGMENT})
+                             "sigma": sigma, "pigment": PIGMENT})
         np.testing.assert_allclose(eval_value(bsdf, wi, wo), f * nl[:, None], rtol=2e-4)
 
 
