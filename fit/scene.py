@@ -68,3 +68,16 @@ def scene_dict(scene: Scene, bsdf: dict, view: int = 0, spp: int = 64) -> dict:
             "radiance": {"type": "rgb", "value": list(scene.environment)},
         }
     return out
+
+
+def coverage_dict(scene: Scene, view: int = 0, spp: int = 64) -> dict:
+    """A scene whose render is each pixel's object coverage in [0, 1] (the object emits 1, nothing
+    else is lit), through the same camera and pixel filter as `scene_dict`."""
+    obj = geometry_dict(scene, {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0, 0, 0]}})
+    obj["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}
+    return {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 1},  # emitters seen directly, nothing else
+        "sensor": sensor_dict(scene.cameras[view], spp),
+        "object": obj,
+    }

@@ -1,0 +1,71 @@
+"""The glaze against another team's implementation: Blender Cycles' renders of a blue glazed sphere
+(../shared/data/peer-cycles/sphere-blue), at the known parameters, from its scene.json."""
+
+from __future__ import annotations
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from captures import load_peer_scene
+from captures.images import read_image
+from fit.render import render
+from fit.scene import coverage_dict, scene_dict
+
+SPP = 1024
+# Mean relative pixel error over fully covered pixels. The issue asks < 0.09; measured here at
+# 1024 spp: 0.029-0.034 at the truth (mostly Mitsuba's own noise: 0.015 at 4096 spp), 0.044 with
+# alpha x 1.5, 0.059 with alpha x 2, 0.10 with alpha x 4. 0.045 still passes the truth with margin
+# and rejects a lobe twice too wide.
+PIXEL_TOL = 0.045
+
+
+@pytest.fixture(scope="module")
+def peer(shared_data):
+    scene = load_peer_scene(shared_data / "peer-cycles" / "sphere-blue" / "scene.json")
+    targets = [read_image(p)[..., :3] for p in scene.meta["images"]]
+    coverage = [render(mi.load_dict(coverage_dict(scene, v, 64)), 64)[..., 0]
+                for v in range(len(scene.cameras))]
+    return scene, targets, coverage
+
+
+def glaze_at_truth(material: dict, fresnel: str) -> dict:
+    return {
+        "type": "glaze",
+        "pigment": {"type": "rgb", "value": material["base_color"]},
+        "sigma": material["diffuse_roughness"],
+        "roughness": material["specular_roughness"] ** 2,  # Cycles' roughness r: alpha = r^2
+        "ior": material["ior"],
+        "coupling": "paper",
+        "fresnel": fresnel,
+    }
+
+
+@pytest.mark.parametrize("fresnel, radiance_tol", [("schlick", 0.05), ("exact", 0.02)])
+def test_glaze_matches_cycles(peer, fresnel, radiance_tol):
+    """Per view: total object radiance within 5 % (Schlick) / 2 % (exact Fresnel, what Cycles
+    uses), and mean relative pixel error over fully covered pixels below `PIXEL_TOL` (total radiance
+    alone would miss a lobe of the wrong width)."""
+    scene, targets, coverage = peer
+    bsdf = glaze_at_truth(scene.meta["material"], fresnel)
+    for view, (target, cover) in enumerate(zip(targets, coverage)):
+        image = render(mi.load_dict(scene_dict(scene, bsdf, view, SPP)), SPP, seed=view)
+        obj, inside = cover > 0, cover > 0.999
+        assert inside.sum() > 1000
+        ratio = image[obj].sum() / target[obj].sum()
+        assert ratio == pytest.approx(1.0, abs=radiance_tol), f"view {view}: radiance ratio {ratio}"
+        rel = np.abs(image[inside] - target[inside]).sum(-1) / target[inside].sum(-1)
+        assert rel.mean() < PIXEL_TOL, f"view {view}: mean relative pixel error {rel.mean():.3f}"
+
+
+def test_wrong_lobe_width_is_caught(peer):
+    """The pixel metric can fail: the same material with alpha doubled keeps its total radiance
+    close but moves pixels."""
+    scene, targets, coverage = peer
+    bsdf = glaze_at_truth(scene.meta["material"], "exact")
+    bsdf["roughness"] *= 2.0
+    image = render(mi.load_dict(scene_dict(scene, bsdf, 0, SPP)), SPP)
+    inside = coverage[0] > 0.999
+    rel = np.abs(image[inside] - targets[0][inside]).sum(-1) / targets[0][inside].sum(-1)
+    ratio = image[coverage[0] > 0].sum() / targets[0][coverage[0] > 0].sum()
+    assert abs(ratio - 1) < 0.02 and rel.mean() > PIXEL_TOL, (ratio, rel.mean())
