@@ -10,15 +10,19 @@ from .scene import Camera, RectLight, Scene
 
 
 class _Table:
-    """A TOML table that remembers where it came from and which keys were read."""
+    """A TOML table that knows where it came from and which keys it may hold."""
 
-    def __init__(self, data: dict, file: Path, where: str):
+    def __init__(self, data: dict, file: Path, where: str, known: tuple[str, ...]):
         if not isinstance(data, dict):
             raise CaptureError(f"{file}: [{where}] must be a table")
-        self.data, self.file, self.where, self.read = data, file, where, set()
+        unknown = sorted(set(data) - set(known))
+        if unknown:  # before missing keys: a misspelt key is the likelier mistake
+            raise CaptureError(
+                f"{file}: unknown key(s) {', '.join(unknown)} in [{where}]; known: {', '.join(known)}"
+            )
+        self.data, self.file, self.where = data, file, where
 
     def _get(self, key, default, required):
-        self.read.add(key)
         if key not in self.data:
             if required:
                 raise CaptureError(f"{self.file}: [{self.where}] needs {key!r}")
@@ -55,18 +59,10 @@ class _Table:
             raise CaptureError(f"{self.file}: {self.where}.{key} must be an array of tables")
         return value
 
-    def done(self):
-        unknown = sorted(set(self.data) - self.read)
-        if unknown:
-            raise CaptureError(
-                f"{self.file}: unknown key(s) {', '.join(unknown)} in [{self.where}]"
-                f"; known: {', '.join(sorted(self.read))}"
-            )
-
 
 def parse_scene(data: dict, file: Path) -> Scene:
     """A `Scene` from the `[scene]` table of `file` (relative paths resolve against its folder)."""
-    t = _Table(data, file, "scene")
+    t = _Table(data, file, "scene", ("geometry", "cameras", "lights", "environment", "max_depth"))
     geometry = t.string("geometry")
     if geometry != "sphere":
         path = (file.parent / geometry).resolve()
@@ -75,7 +71,8 @@ def parse_scene(data: dict, file: Path) -> Scene:
         geometry = path
     cameras = []
     for i, item in enumerate(t.list("cameras")):
-        c = _Table(item, file, f"scene.cameras[{i}]")
+        c = _Table(item, file, f"scene.cameras[{i}]",
+                   ("origin", "target", "up", "fov_x_deg", "width", "height"))
         cameras.append(
             Camera(
                 origin=c.vec("origin"),
@@ -86,12 +83,12 @@ def parse_scene(data: dict, file: Path) -> Scene:
                 height=c.number("height", int, minimum=1),
             )
         )
-        c.done()
     if not cameras:
         raise CaptureError(f"{file}: [scene] needs at least one [[scene.cameras]]")
     lights = []
     for i, item in enumerate(t.list("lights")):
-        lt = _Table(item, file, f"scene.lights[{i}]")
+        lt = _Table(item, file, f"scene.lights[{i}]",
+                    ("type", "center", "u_axis", "v_axis", "size", "emit_direction", "radiance"))
         kind = lt.string("type", "rectangle")
         if kind != "rectangle":
             raise CaptureError(f"{file}: scene.lights[{i}].type = {kind!r}; known: rectangle")
@@ -105,7 +102,6 @@ def parse_scene(data: dict, file: Path) -> Scene:
                 radiance=lt.vec("radiance"),
             )
         )
-        lt.done()
     scene = Scene(
         geometry=geometry,
         cameras=tuple(cameras),
@@ -113,5 +109,4 @@ def parse_scene(data: dict, file: Path) -> Scene:
         environment=t.vec("environment", default=(0.0, 0.0, 0.0)),
         max_depth=t.number("max_depth", int, default=8, minimum=1),
     )
-    t.done()
     return scene

@@ -22,13 +22,18 @@ VariantOption = Annotated[
 ]
 
 
+def _fail(err: Exception, code: int) -> typer.Exit:
+    """Print one unwrapped error line; return the exit to raise."""
+    console.print(f"[red]error:[/] {err}", highlight=False, soft_wrap=True)
+    return typer.Exit(code)
+
+
 def _start(variant: str | None) -> None:
     """Select the variant and register the plugins, or stop with one line."""
     try:
         select_variant(variant)
     except BackendError as err:
-        console.print(f"[red]error:[/] {err}", highlight=False)
-        raise typer.Exit(1) from None
+        raise _fail(err, 1) from None
     import materials
 
     materials.register()
@@ -60,8 +65,7 @@ def render(
     try:
         cfg = load_render_config(config)
     except CaptureError as err:
-        console.print(f"[red]error:[/] {err}", highlight=False)
-        raise typer.Exit(2) from None
+        raise _fail(err, 2) from None
     _start(variant)
     import mitsuba as mi
 
@@ -105,5 +109,5 @@ def main() -> None:
     try:
         app()
     except BackendError as err:  # raised outside _start, e.g. by a library call
-        console.print(f"[red]error:[/] {err}", highlight=False)
+        console.print(f"[red]error:[/] {err}", highlight=False, soft_wrap=True)
         sys.exit(1)

@@ -1,0 +1,94 @@
+"""`layerfit render` and config validation: outputs whole, errors that name file and key."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from captures import CaptureError
+from captures.images import read_image, srgb_decode
+from fit.config import ConfigError, load_render_config
+
+ROOT = Path(__file__).resolve().parents[2]
+DEFAULT = ROOT / "configs" / "glazed-sphere.toml"
+
+
+def small_config(tmp_path: Path, **material) -> Path:
+    """The bundled config at 64x48 and 16 spp, with material overrides."""
+    text = DEFAULT.read_text().replace("width = 480", "width = 64").replace("height = 360", "height = 48")
+    text = text.replace("spp = 256", "spp = 16")
+    for key, value in material.items():
+        text = text.replace("[material]\n", f"[material]\n{key} = {value}\n", 1)
+    path = tmp_path / "small.toml"
+    path.write_text(text)
+    return path
+
+
+def run(*args, cwd=ROOT):
+    return subprocess.run([sys.executable, "-m", "fit", *map(str, args)], capture_output=True,
+                          text=True, cwd=cwd, timeout=600, env={**os.environ, "COLUMNS": "200"})
+
+
+def test_bundled_config_loads():
+    cfg = load_render_config(DEFAULT)
+    assert cfg.material["type"] == "glaze" and cfg.material["roughness"] == 0.0625
+    assert len(cfg.scene.cameras) == 1 and len(cfg.scene.lights) == 2
+
+
+def test_render_writes_exr_and_png(tmp_path):
+    out = run("render", small_config(tmp_path), "--out", tmp_path / "img.png")
+    assert out.returncode == 0, out.stderr
+    exr, png = read_image(tmp_path / "img.exr"), read_image(tmp_path / "img.png")
+    assert exr.shape == (48, 64, 3) and png.shape == (48, 64, 3)
+    assert np.all(np.isfinite(exr)) and exr.max() > 0.1
+    # the PNG is the EXR, sRGB-encoded and clipped, to 16-bit precision
+    np.testing.assert_allclose(srgb_decode(png), np.clip(exr, 0, 1), atol=2e-4)
+    # the blue pigment shows: more blue than red on the object
+    centre = exr[18:30, 26:38]
+    assert centre[..., 2].mean() > 1.5 * centre[..., 0].mean()
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (("[material]\n", "[material]\nroughnes = 0.2\n"), "unknown key material.roughnes for glaze"),
+        (("ior = 1.52", "ior = 0.9"), "material: ior = 0.9 is outside its bounds [1.01, 3.0]"),
+        (("fresnel = \"schlick\"", "fresnel = \"fast\""), "material.fresnel = 'fast'; choose one of"),
+        (("fov_x_deg = 36.0", "fov = 36.0"), "unknown key(s) fov in [scene.cameras[0]]"),
+        (("spp = 256", "spp = 0"), "render.spp = 0 must be a positive integer"),
+        (("geometry = \"sphere\"", "geometry = \"cup.obj\""), "scene.geometry 'cup.obj' does not exist"),
+        (("[render]", "[rendr]"), "unknown table(s) rendr"),
+    ],
+)
+def test_config_errors_name_file_and_key(tmp_path, edit, message):
+    text = DEFAULT.read_text()
+    assert edit[0] in text
+    path = tmp_path / "bad.toml"
+    path.write_text(text.replace(edit[0], edit[1], 1))
+    with pytest.raises(CaptureError) as err:  # ConfigError for [material], [render]
+        load_render_config(path)
+    assert str(path) in str(err.value) and message in str(err.value)
+
+
+def test_cli_bad_config_writes_nothing(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text(DEFAULT.read_text().replace("ior = 1.52", "ior = 7"))
+    out = run("render", path, "--out", tmp_path / "img.png")
+    assert out.returncode == 2
+    assert f"{path}: material: ior = 7" in out.stderr
+    assert not list(tmp_path.glob("img*"))
+
+
+def test_missing_and_invalid_files(tmp_path):
+    with pytest.raises(ConfigError, match="no such file"):
+        load_render_config(tmp_path / "none.toml")
+    (tmp_path / "broken.toml").write_text("[scene\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_render_config(tmp_path / "broken.toml")
+    assert tomllib  # the parser we rely on is the standard library's

@@ -1,0 +1,80 @@
+"""libLLVM discovery: a usable one is chosen explicitly, an unusable one is a one-line error."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from fit import variant
+from fit.variant import BackendError, ensure_llvm, find_libllvm, llvm_version
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+@pytest.mark.parametrize(
+    "name, version",
+    [("libLLVM-19.so", 19), ("libLLVM-19.so.1", 19), ("libLLVM.so.19.1", 19),
+     ("libLLVM-14.0.6.so.1", 14), ("libLLVM-15.so", 15), ("libLLVM.so", None), ("libfoo.so", None)],
+)
+def test_llvm_version(name, version):
+    assert llvm_version(f"/usr/lib/{name}") == version
+
+
+def test_find_prefers_newest_usable(tmp_path, monkeypatch):
+    for name in ("libLLVM-14.so.1", "libLLVM-15.so", "libLLVM-17.so.1", "libLLVM.so.19.1"):
+        (tmp_path / name).touch()
+    monkeypatch.setattr(variant, "_candidates", lambda: [str(p) for p in tmp_path.iterdir()])
+    assert find_libllvm() == str(tmp_path / "libLLVM.so.19.1")
+
+
+def test_none_usable_is_a_clear_error(tmp_path, monkeypatch):
+    (tmp_path / "libLLVM-15.so").touch()
+    monkeypatch.setattr(variant, "_candidates", lambda: [str(tmp_path / "libLLVM-15.so")])
+    monkeypatch.delenv("DRJIT_LIBLLVM_PATH", raising=False)
+    with pytest.raises(BackendError, match="apt-get install libllvm19"):
+        ensure_llvm()
+
+
+def test_explicit_old_llvm_is_refused(tmp_path, monkeypatch):
+    old = tmp_path / "libLLVM-14.so.1"
+    old.touch()
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(old))
+    with pytest.raises(BackendError, match="libLLVM 14, which crashes Dr.Jit"):
+        ensure_llvm()
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(tmp_path / "missing.so"))
+    with pytest.raises(BackendError, match="does not exist"):
+        ensure_llvm()
+
+
+def _run_without_llvm(tmp_path, args):
+    old = tmp_path / "libLLVM-15.so"
+    old.touch()
+    env = {**os.environ, "DRJIT_LIBLLVM_PATH": str(old)}
+    return subprocess.run(args, capture_output=True, text=True, env=env, cwd=ROOT, timeout=300)
+
+
+def test_cli_stops_with_one_line(tmp_path):
+    out = _run_without_llvm(
+        tmp_path, [sys.executable, "-m", "fit", "render", "configs/glazed-sphere.toml",
+                   "--out", str(tmp_path / "x.png")],
+    )
+    assert out.returncode == 1
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and "install libLLVM >= 16" in lines[0], out.stderr
+    assert "LLVM ERROR" not in out.stderr and not list(tmp_path.glob("x*"))
+
+
+def test_tests_stop_with_one_line(tmp_path):
+    (tmp_path / "test_nothing.py").write_text("def test_x():\n    pass\n")
+    out = _run_without_llvm(
+        tmp_path, [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                   "--rootdir", ROOT, "-c", os.path.join(ROOT, "pyproject.toml"),
+                   "--confcutdir", os.path.join(ROOT, "tests"), os.path.join(ROOT, "tests", "fit",
+                                                                          "test_variant.py::test_llvm_version")],
+    )
+    assert out.returncode == 3, out.stdout + out.stderr
+    assert "layerfit tests cannot run" in out.stdout + out.stderr
+    assert "install libLLVM >= 16" in out.stdout + out.stderr

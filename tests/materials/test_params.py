@@ -1,0 +1,85 @@
+"""Parameter declarations: bounds, transforms, and what `register()` does (and does not do)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from materials.params import BOUND_MARGIN, GLAZE_PARAMS, OREN_NAYAR_PARAMS, ParamSpec, spec_table
+
+ALL = [*GLAZE_PARAMS.values(), *OREN_NAYAR_PARAMS.values()]
+
+
+def test_design_bounds():
+    """The bounds DESIGN.md fixes."""
+    assert (GLAZE_PARAMS["roughness"].lower, GLAZE_PARAMS["roughness"].upper) == (0.01, 1.0)
+    assert (GLAZE_PARAMS["ior"].lower, GLAZE_PARAMS["ior"].upper) == (1.01, 3.0)
+    assert (OREN_NAYAR_PARAMS["sigma"].lower, OREN_NAYAR_PARAMS["sigma"].upper) == (0.0, 1.0)
+    assert OREN_NAYAR_PARAMS["sigma"].unit == "rad"
+
+
+@pytest.mark.parametrize("spec", ALL, ids=lambda s: s.key)
+def test_transform_round_trip(spec):
+    x = np.linspace(spec.lower, spec.upper, 11)[1:-1]
+    np.testing.assert_allclose(spec.from_unconstrained(spec.to_unconstrained(x)), x, rtol=1e-9)
+
+
+@pytest.mark.parametrize("spec", ALL, ids=lambda s: s.key)
+def test_start_at_bound_moves_inside(spec):
+    span = spec.upper - spec.lower
+    for bound, inside in ((spec.lower, spec.lower + BOUND_MARGIN * span),
+                          (spec.upper, spec.upper - BOUND_MARGIN * span)):
+        u = spec.to_unconstrained(bound)
+        assert np.isfinite(u)
+        assert spec.from_unconstrained(u) == pytest.approx(inside, rel=1e-9)
+
+
+def test_transform_works_with_jax():
+    jnp = pytest.importorskip("jax.numpy")
+    spec = GLAZE_PARAMS["roughness"]
+    u = spec.to_unconstrained(jnp.asarray(0.3), xp=jnp)
+    assert float(spec.from_unconstrained(u, xp=jnp)) == pytest.approx(0.3, rel=1e-6)
+
+
+def test_bad_declarations():
+    with pytest.raises(ValueError, match="lower 1 must be < upper 0"):
+        ParamSpec("x", 0.5, 1, 0, "sigmoid", "", "")
+    with pytest.raises(ValueError, match="default 2.0 is outside"):
+        ParamSpec("x", 2.0, 0, 1, "sigmoid", "", "")
+    with pytest.raises(ValueError, match="declared twice"):
+        spec_table(GLAZE_PARAMS["ior"], GLAZE_PARAMS["ior"])
+
+
+def test_check_names_the_place():
+    with pytest.raises(ValueError, match=r"cup.toml: material: ior = 0.5 is outside .*\[1.01, 3.0\]"):
+        GLAZE_PARAMS["ior"].check(0.5, "cup.toml: material")
+    with pytest.raises(ValueError, match="not finite"):
+        GLAZE_PARAMS["ior"].check(float("nan"), "here")
+
+
+@pytest.mark.parametrize("plugin, specs", [("glaze", GLAZE_PARAMS), ("oren_nayar", OREN_NAYAR_PARAMS)])
+def test_traverse_exposes_every_declared_parameter(plugin, specs):
+    params = mi.traverse(mi.load_dict({"type": plugin}))
+    keys = {f"{s.key}.value" if s.kind == "rgb" else s.key for s in specs.values()}
+    assert keys == set(params.keys())
+    for key in keys:
+        assert params.flags(key) & int(mi.ParamFlags.NonDifferentiable) == 0, key
+    for spec in specs.values():  # plugin defaults are the declared defaults
+        key = f"{spec.key}.value" if spec.kind == "rgb" else spec.key
+        np.testing.assert_allclose(np.ravel(params[key]), np.ravel(spec.default), rtol=1e-6)
+
+
+def test_import_has_no_side_effects():
+    """Importing `materials` sets no variant and registers nothing; `register()` needs a variant."""
+    code = (
+        "import mitsuba as mi, materials\n"
+        "assert mi.variant() is None, mi.variant()\n"
+        "try:\n    materials.register()\nexcept RuntimeError as e:\n    print(e)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "set a Mitsuba variant first" in out.stdout
