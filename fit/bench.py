@@ -62,36 +62,51 @@ def _timed(scene: mi.Scene, spp: int, seed: int) -> float:
 
 
 def bsdf_speed_table(spp: int = 64, repeats: int = 7, progress=None) -> Table:
-    """Render time of `glaze` vs Mitsuba's `principled` with matching parameters, same scene."""
+    """Render time of our BSDFs vs Mitsuba's built-ins with matching parameters, same scene.
+
+    `glaze` is compared with `principled` (the built-in with a Fresnel-weighted specular lobe over
+    a diffuse base), `oren_nayar` with `diffuse`.
+    """
     cfg = load_render_config(DEFAULT_SCENE)
     glaze = cfg.material
-    alpha = glaze["roughness"]
+    pigment = glaze["pigment"]
     principled = {
         "type": "principled",
-        "base_color": glaze["pigment"],
-        "roughness": float(np.sqrt(alpha)),  # principled's roughness r has alpha = r^2
+        "base_color": pigment,
+        "roughness": float(np.sqrt(glaze["roughness"])),  # principled's roughness r: alpha = r^2
         "eta": glaze["ior"],
     }
-    bsdfs = {"glaze (paper, schlick)": glaze, "principled": principled}
-    scenes = {name: mi.load_dict(scene_dict(cfg.scene, b, 0, spp)) for name, b in bsdfs.items()}
-    task = progress.add_task("bench: glaze vs principled", total=repeats * len(scenes)) if progress else None
+    # name: (BSDF, reference name)
+    bsdfs = {
+        "principled": (principled, "principled"),
+        "glaze paper/schlick": (glaze, "principled"),
+        "glaze paper/exact": ({**glaze, "fresnel": "exact"}, "principled"),
+        "glaze reciprocal/schlick": ({**glaze, "coupling": "reciprocal"}, "principled"),
+        "diffuse": ({"type": "diffuse", "reflectance": pigment}, "diffuse"),
+        "oren_nayar sigma 0.5": (
+            {"type": "oren_nayar", "reflectance": pigment, "sigma": 0.5}, "diffuse"
+        ),
+    }
+    scenes = {name: mi.load_dict(scene_dict(cfg.scene, b, 0, spp)) for name, (b, _) in bsdfs.items()}
+    task = progress.add_task("bench: BSDF speed", total=repeats * len(scenes)) if progress else None
     times: dict[str, list[float]] = {name: [] for name in scenes}
-    for name, scene in scenes.items():  # first renders compile kernels: not timed
+    for scene in scenes.values():  # first renders compile kernels: not timed
         _timed(scene, spp, 0)
-    for i in range(repeats):  # interleave so that drift hits both alike
+    for i in range(repeats):  # interleave so that drift hits all alike
         for name, scene in scenes.items():
             times[name].append(_timed(scene, spp, i + 1))
             if progress:
                 progress.advance(task)
-    ref = statistics.median(times["principled"])
+    median = {name: statistics.median(t) for name, t in times.items()}
     cam = cfg.scene.cameras[0]
     rows = [
-        [name, f"{statistics.median(t) * 1e3:.1f}", f"{min(t) * 1e3:.1f}", f"{statistics.median(t) / ref:.3f}"]
-        for name, t in times.items()
+        [name, f"{median[name] * 1e3:.1f}", f"{min(times[name]) * 1e3:.1f}", ref,
+         f"{median[name] / median[ref]:.3f}"]
+        for name, (_, ref) in bsdfs.items()
     ]
     return Table(
-        title=f"Glaze vs principled: sphere, {cam.width}x{cam.height}, {spp} spp, prb",
-        columns=["BSDF", "median ms", "min ms", "time / principled"],
+        title=f"BSDF render time: glazed-sphere scene, {cam.width}x{cam.height}, {spp} spp, prb",
+        columns=["BSDF", "median ms", "min ms", "reference", "time / reference"],
         rows=rows,
-        notes=[f"median of {repeats} renders after one untimed warm-up each", machine()],
+        notes=[f"median of {repeats} interleaved renders after one untimed warm-up each", machine()],
     )

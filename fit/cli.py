@@ -92,7 +92,7 @@ def bench(
     out: Annotated[Path | None, typer.Option(help="Also write the table (Markdown) here.")] = None,
     variant: VariantOption = None,
 ) -> None:
-    """Speed table: render time of the glaze vs Mitsuba's `principled` on the same sphere scene."""
+    """Speed table: our BSDFs vs Mitsuba's built-ins (`principled`, `diffuse`), same scene."""
     _start(variant)
     from .bench import bsdf_speed_table
 

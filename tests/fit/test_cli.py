@@ -92,3 +92,13 @@ def test_missing_and_invalid_files(tmp_path):
     with pytest.raises(ConfigError, match="not valid TOML"):
         load_render_config(tmp_path / "broken.toml")
     assert tomllib  # the parser we rely on is the standard library's
+
+
+def test_bench_table_runs():
+    """The benchmark command's table is complete (its timings are reported, never asserted)."""
+    from fit.bench import bsdf_speed_table
+
+    table = bsdf_speed_table(spp=1, repeats=1)
+    assert [row[0] for row in table.rows][:2] == ["principled", "glaze paper/schlick"]
+    assert all(float(row[1]) > 0 for row in table.rows)
+    assert "| glaze paper/exact |" in table.markdown()
