@@ -1,7 +1,7 @@
 """What the camera saw: scene descriptions, photo sets and their loaders (no Dr.Jit, no JAX)."""
 
 from .peer import CaptureError, load_peer_scene
-from .schema import parse_scene
 from .scene import Camera, RectLight, Scene
+from .schema import parse_scene
 
 __all__ = ["Camera", "CaptureError", "RectLight", "Scene", "load_peer_scene", "parse_scene"]

@@ -53,7 +53,9 @@ def write_image(path: str | Path, linear: np.ndarray) -> Path:
     elif suffix in (".jpg", ".jpeg"):
         fmt, data = oiio.UINT8, srgb_encode(data).astype(np.float32)
     else:
-        raise CaptureError(f"{path}: unsupported image type {suffix!r}; use .exr, .png, .tif or .jpg")
+        raise CaptureError(
+            f"{path}: unsupported image type {suffix!r}; use .exr, .png, .tif or .jpg"
+        )
     path.parent.mkdir(parents=True, exist_ok=True)
     spec = oiio.ImageSpec(data.shape[1], data.shape[0], data.shape[2], fmt)
     fd, tmp = tempfile.mkstemp(suffix=suffix, dir=path.parent)

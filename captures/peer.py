@@ -68,7 +68,9 @@ def load_peer_scene(path: str | Path) -> Scene:
                 emit_direction=_vec(
                     field(light, "emit_direction", f"lights[{i}]"), f"{where}.emit_direction"
                 ),
-                radiance=_vec(field(light, "radiance_rgb", f"lights[{i}]"), f"{where}.radiance_rgb"),
+                radiance=_vec(
+                    field(light, "radiance_rgb", f"lights[{i}]"), f"{where}.radiance_rgb"
+                ),
             )
         )
     mesh = path.parent / field(doc, "mesh", "the file")

@@ -41,7 +41,7 @@ class RectLight:
 
 @dataclass(frozen=True)
 class Scene:
-    """Geometry (an OBJ path, or the built-in unit `"sphere"`), views' cameras, lights, environment."""
+    """Geometry (an OBJ path or the built-in unit `"sphere"`), cameras, lights, environment."""
 
     geometry: Path | str
     cameras: tuple[Camera, ...]

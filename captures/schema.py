@@ -18,7 +18,8 @@ class _Table:
         unknown = sorted(set(data) - set(known))
         if unknown:  # before missing keys: a misspelt key is the likelier mistake
             raise CaptureError(
-                f"{file}: unknown key(s) {', '.join(unknown)} in [{where}]; known: {', '.join(known)}"
+                f"{file}: unknown key(s) {', '.join(unknown)} in [{where}]; "
+                f"known: {', '.join(known)}"
             )
         self.data, self.file, self.where = data, file, where
 
@@ -36,7 +37,9 @@ class _Table:
         except (TypeError, ValueError):
             out = ()
         if len(out) != n:
-            raise CaptureError(f"{self.file}: {self.where}.{key} must be {n} numbers, got {value!r}")
+            raise CaptureError(
+                f"{self.file}: {self.where}.{key} must be {n} numbers, got {value!r}"
+            )
         return out
 
     def number(self, key, kind=float, default=None, minimum=None):
@@ -71,8 +74,12 @@ def parse_scene(data: dict, file: Path) -> Scene:
         geometry = path
     cameras = []
     for i, item in enumerate(t.list("cameras")):
-        c = _Table(item, file, f"scene.cameras[{i}]",
-                   ("origin", "target", "up", "fov_x_deg", "width", "height"))
+        c = _Table(
+            item,
+            file,
+            f"scene.cameras[{i}]",
+            ("origin", "target", "up", "fov_x_deg", "width", "height"),
+        )
         cameras.append(
             Camera(
                 origin=c.vec("origin"),
@@ -87,8 +94,12 @@ def parse_scene(data: dict, file: Path) -> Scene:
         raise CaptureError(f"{file}: [scene] needs at least one [[scene.cameras]]")
     lights = []
     for i, item in enumerate(t.list("lights")):
-        lt = _Table(item, file, f"scene.lights[{i}]",
-                    ("type", "center", "u_axis", "v_axis", "size", "emit_direction", "radiance"))
+        lt = _Table(
+            item,
+            file,
+            f"scene.lights[{i}]",
+            ("type", "center", "u_axis", "v_axis", "size", "emit_direction", "radiance"),
+        )
         kind = lt.string("type", "rectangle")
         if kind != "rectangle":
             raise CaptureError(f"{file}: scene.lights[{i}].type = {kind!r}; known: rectangle")

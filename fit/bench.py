@@ -84,10 +84,13 @@ def bsdf_speed_table(spp: int = 64, repeats: int = 7, progress=None) -> Table:
         "glaze reciprocal/schlick": ({**glaze, "coupling": "reciprocal"}, "principled"),
         "diffuse": ({"type": "diffuse", "reflectance": pigment}, "diffuse"),
         "oren_nayar sigma 0.5": (
-            {"type": "oren_nayar", "reflectance": pigment, "sigma": 0.5}, "diffuse"
+            {"type": "oren_nayar", "reflectance": pigment, "sigma": 0.5},
+            "diffuse",
         ),
     }
-    scenes = {name: mi.load_dict(scene_dict(cfg.scene, b, 0, spp)) for name, (b, _) in bsdfs.items()}
+    scenes = {
+        name: mi.load_dict(scene_dict(cfg.scene, b, 0, spp)) for name, (b, _) in bsdfs.items()
+    }
     task = progress.add_task("bench: BSDF speed", total=repeats * len(scenes)) if progress else None
     times: dict[str, list[float]] = {name: [] for name in scenes}
     for scene in scenes.values():  # first renders compile kernels: not timed
@@ -100,13 +103,21 @@ def bsdf_speed_table(spp: int = 64, repeats: int = 7, progress=None) -> Table:
     median = {name: statistics.median(t) for name, t in times.items()}
     cam = cfg.scene.cameras[0]
     rows = [
-        [name, f"{median[name] * 1e3:.1f}", f"{min(times[name]) * 1e3:.1f}", ref,
-         f"{median[name] / median[ref]:.3f}"]
+        [
+            name,
+            f"{median[name] * 1e3:.1f}",
+            f"{min(times[name]) * 1e3:.1f}",
+            ref,
+            f"{median[name] / median[ref]:.3f}",
+        ]
         for name, (_, ref) in bsdfs.items()
     ]
     return Table(
         title=f"BSDF render time: glazed-sphere scene, {cam.width}x{cam.height}, {spp} spp, prb",
         columns=["BSDF", "median ms", "min ms", "reference", "time / reference"],
         rows=rows,
-        notes=[f"median of {repeats} interleaved renders after one untimed warm-up each", machine()],
+        notes=[
+            f"median of {repeats} interleaved renders after one untimed warm-up each",
+            machine(),
+        ],
     )

@@ -18,7 +18,9 @@ console = Console(stderr=True)
 
 VariantOption = Annotated[
     str | None,
-    typer.Option("--variant", envvar="LAYERFIT_VARIANT", help="Mitsuba variant (default llvm_ad_rgb)."),
+    typer.Option(
+        "--variant", envvar="LAYERFIT_VARIANT", help="Mitsuba variant (default llvm_ad_rgb)."
+    ),
 ]
 
 
@@ -41,18 +43,26 @@ def _start(variant: str | None) -> None:
 
 def _progress() -> Progress:
     return Progress(
-        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-        console=console, transient=False,
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=False,
     )
 
 
 @app.command()
 def render(
-    config: Annotated[Path, typer.Argument(help="Render config (TOML): [scene], [material], [render].")],
-    out: Annotated[Path, typer.Option(help="Output PNG (sRGB); a linear EXR is written beside it.")] = Path(
-        "out/render.png"
-    ),
-    spp: Annotated[int | None, typer.Option(help="Samples per pixel (overrides the config).")] = None,
+    config: Annotated[
+        Path, typer.Argument(help="Render config (TOML): [scene], [material], [render].")
+    ],
+    out: Annotated[
+        Path, typer.Option(help="Output PNG (sRGB); a linear EXR is written beside it.")
+    ] = Path("out/render.png"),
+    spp: Annotated[
+        int | None, typer.Option(help="Samples per pixel (overrides the config).")
+    ] = None,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     variant: VariantOption = None,
 ) -> None:
@@ -78,7 +88,7 @@ def render(
         for view in range(views):
             task = bar.add_task(f"view {view}", total=spp)
             scene = mi.load_dict(scene_dict(cfg.scene, cfg.material, view, spp))
-            image = render_image(scene, spp, seed, lambda n: bar.update(task, completed=n))
+            image = render_image(scene, spp, seed, lambda n, t=task: bar.update(t, completed=n))
             stem = out.with_suffix("") if views == 1 else out.with_name(f"{out.stem}_{view:02d}")
             for path in (stem.with_suffix(".exr"), stem.with_suffix(out.suffix or ".png")):
                 write_image(path, image)
@@ -88,7 +98,9 @@ def render(
 @app.command()
 def bench(
     spp: Annotated[int, typer.Option(help="Samples per pixel of each timed render.")] = 64,
-    repeats: Annotated[int, typer.Option(help="Timed renders per BSDF (the median is reported).")] = 7,
+    repeats: Annotated[
+        int, typer.Option(help="Timed renders per BSDF (the median is reported).")
+    ] = 7,
     out: Annotated[Path | None, typer.Option(help="Also write the table (Markdown) here.")] = None,
     variant: VariantOption = None,
 ) -> None:

@@ -67,7 +67,9 @@ def load_render_config(path: str | Path) -> RenderConfig:
         raise ConfigError(f"{path}: not valid TOML ({err})") from None
     unknown = sorted(set(doc) - {"scene", "material", "render"})
     if unknown:
-        raise ConfigError(f"{path}: unknown table(s) {', '.join(unknown)}; known: scene, material, render")
+        raise ConfigError(
+            f"{path}: unknown table(s) {', '.join(unknown)}; known: scene, material, render"
+        )
     for table in ("scene", "material"):
         if table not in doc:
             raise ConfigError(f"{path}: missing [{table}]")
@@ -78,7 +80,9 @@ def load_render_config(path: str | Path) -> RenderConfig:
     if not isinstance(spp, int) or spp < 1:
         raise ConfigError(f"{path}: render.spp = {spp!r} must be a positive integer")
     try:
-        return RenderConfig(parse_scene(doc["scene"], path), material_dict(doc["material"], path), spp)
+        return RenderConfig(
+            parse_scene(doc["scene"], path), material_dict(doc["material"], path), spp
+        )
     except ValueError as err:  # bounds violations raised by the declarations
         if isinstance(err, CaptureError):
             raise

@@ -32,7 +32,9 @@ def rect_light_dict(light: RectLight) -> dict:
     """Mitsuba's `rectangle` spans [-1, 1]^2 with normal +z: scale by size/2 along u and v and map
     +z to the emission direction (the normal transforms to `emit_direction` since it is orthogonal
     to both edges)."""
-    u, v, n = (np.asarray(x, dtype=float) for x in (light.u_axis, light.v_axis, light.emit_direction))
+    u, v, n = (
+        np.asarray(x, dtype=float) for x in (light.u_axis, light.v_axis, light.emit_direction)
+    )
     m = np.eye(4)
     m[:3, 0] = u * light.size[0] / 2
     m[:3, 1] = v * light.size[1] / 2
@@ -73,7 +75,9 @@ def scene_dict(scene: Scene, bsdf: dict, view: int = 0, spp: int = 64) -> dict:
 def coverage_dict(scene: Scene, view: int = 0, spp: int = 64) -> dict:
     """A scene whose render is each pixel's object coverage in [0, 1] (the object emits 1, nothing
     else is lit), through the same camera and pixel filter as `scene_dict`."""
-    obj = geometry_dict(scene, {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0, 0, 0]}})
+    obj = geometry_dict(
+        scene, {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0, 0, 0]}}
+    )
     obj["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}
     return {
         "type": "scene",

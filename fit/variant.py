@@ -2,8 +2,8 @@
 
 Dr.Jit's LLVM backend loads a shared libLLVM at run time. libLLVM 14 and 15 (Debian 12's defaults)
 abort the process at the first render (``LLVM ERROR: Cannot select ... fminimum``), so before any
-``llvm_*`` variant is set we look for libLLVM >= 16 ourselves, point ``DRJIT_LIBLLVM_PATH`` at it and
-fail with one line that says what to install when there is none.
+``llvm_*`` variant is set we look for libLLVM >= 16 ourselves, point ``DRJIT_LIBLLVM_PATH`` at
+it and fail with one line that says what to install when there is none.
 """
 
 from __future__ import annotations
@@ -51,7 +51,9 @@ def _candidates() -> list[str]:
         for folder in glob.glob(pattern):
             found += glob.glob(os.path.join(folder, "libLLVM*.so*"))
     try:
-        out = subprocess.run(["ldconfig", "-p"], capture_output=True, text=True, timeout=10).stdout
+        out = subprocess.run(
+            ["ldconfig", "-p"], capture_output=True, text=True, timeout=10, check=False
+        ).stdout
         found += [line.split("=>")[-1].strip() for line in out.splitlines() if "libLLVM" in line]
     except (OSError, subprocess.SubprocessError):
         pass
@@ -101,7 +103,8 @@ def select_variant(variant: str | None = None) -> str:
 
     if variant not in mi.variants():
         raise BackendError(
-            f"Mitsuba variant {variant!r} is not available; choose one of {', '.join(mi.variants())}."
+            f"Mitsuba variant {variant!r} is not available; "
+            f"choose one of {', '.join(mi.variants())}."
         )
     mi.set_variant(variant)
     return variant

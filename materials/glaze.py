@@ -8,8 +8,8 @@ With `v = wi` (towards the viewer), `l = wo`, `spec = D G / (4 (n.l)(n.v))` and
 
 with `F` Schlick's (`fresnel = "schlick"`) or the exact dielectric one (`"exact"`). Sampling picks a
 lobe with probability from an estimate of the lobes' weights, then samples Beckmann half-vectors
-(Walter et al. 2007) or a cosine-weighted direction; `pdf` is the matching mixture. Sampling decisions
-are detached from the AD graph; the returned weight is `f cos / detach(pdf)`.
+(Walter et al. 2007) or a cosine-weighted direction; `pdf` is the matching mixture. Sampling
+decisions are detached from the AD graph; the returned weight is `f cos / detach(pdf)`.
 """
 
 from __future__ import annotations

@@ -55,9 +55,9 @@ def fresnel(cos_theta, ior, kind: str):
 def oren_nayar(wi, wo, sigma):
     """Qualitative Oren-Nayar factor `A + B max(0, cos(phi_i - phi_o)) sin(a) tan(b)`.
 
-    With `a = max(theta_i, theta_o)`, `b = min(...)`: `cos(dphi) sin(theta_i) sin(theta_o)` is the dot
-    product of the projected directions and `sin(a) tan(b) = sin_i sin_o / max(cos_i, cos_o)`, so the
-    factor needs no azimuths and no division by a sine.
+    With `a = max(theta_i, theta_o)`, `b = min(...)`: `cos(dphi) sin(theta_i) sin(theta_o)` is
+    the dot product of the projected directions and `sin(a) tan(b) = sin_i sin_o / max(cos_i,
+    cos_o)`, so the factor needs no azimuths and no division by a sine.
     """
     s2 = sigma * sigma
     a = 1.0 - 0.5 * s2 / (s2 + 0.33)

@@ -45,7 +45,9 @@ class ParamSpec:
 
     def __post_init__(self):
         if not self.lower < self.upper:
-            raise ValueError(f"ParamSpec {self.key}: lower {self.lower} must be < upper {self.upper}")
+            raise ValueError(
+                f"ParamSpec {self.key}: lower {self.lower} must be < upper {self.upper}"
+            )
         values = np.atleast_1d(np.asarray(self.default, dtype=float))
         if np.any(values < self.lower) or np.any(values > self.upper):
             raise ValueError(f"ParamSpec {self.key}: default {self.default} is outside the bounds")
@@ -91,19 +93,41 @@ def spec_table(*specs: ParamSpec) -> dict[str, ParamSpec]:
 # Shared declarations ------------------------------------------------------------------------------
 
 SIGMA = ParamSpec(
-    "sigma", 0.0, 0.0, 1.0, "sigmoid", "rad",
+    "sigma",
+    0.0,
+    0.0,
+    1.0,
+    "sigmoid",
+    "rad",
     "Oren-Nayar facet slope standard deviation; 0 is Lambert",
 )
 REFLECTANCE = ParamSpec(
-    "reflectance", (0.5, 0.5, 0.5), 0.0, 1.0, "sigmoid", "",
-    "diffuse albedo, linear RGB", kind="rgb",
+    "reflectance",
+    (0.5, 0.5, 0.5),
+    0.0,
+    1.0,
+    "sigmoid",
+    "",
+    "diffuse albedo, linear RGB",
+    kind="rgb",
 )
 PIGMENT = ParamSpec(
-    "pigment", (0.5, 0.5, 0.5), 0.0, 1.0, "sigmoid", "",
-    "colour of the pigment under the glaze, linear RGB", kind="rgb",
+    "pigment",
+    (0.5, 0.5, 0.5),
+    0.0,
+    1.0,
+    "sigmoid",
+    "",
+    "colour of the pigment under the glaze, linear RGB",
+    kind="rgb",
 )
 ROUGHNESS = ParamSpec(
-    "roughness", 0.1, 0.01, 1.0, "sigmoid", "",
+    "roughness",
+    0.1,
+    0.01,
+    1.0,
+    "sigmoid",
+    "",
     "Beckmann alpha of the glaze's specular lobe (other tools' roughness r maps to alpha = r^2)",
 )
 IOR = ParamSpec("ior", 1.5, 1.01, 3.0, "sigmoid", "", "index of refraction of the glaze coat")

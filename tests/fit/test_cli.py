@@ -21,7 +21,11 @@ DEFAULT = ROOT / "configs" / "glazed-sphere.toml"
 
 def small_config(tmp_path: Path, **material) -> Path:
     """The bundled config at 64x48 and 16 spp, with material overrides."""
-    text = DEFAULT.read_text().replace("width = 480", "width = 64").replace("height = 360", "height = 48")
+    text = (
+        DEFAULT.read_text()
+        .replace("width = 480", "width = 64")
+        .replace("height = 360", "height = 48")
+    )
     text = text.replace("spp = 256", "spp = 16")
     for key, value in material.items():
         text = text.replace("[material]\n", f"[material]\n{key} = {value}\n", 1)
@@ -31,8 +35,15 @@ def small_config(tmp_path: Path, **material) -> Path:
 
 
 def run(*args, cwd=ROOT):
-    return subprocess.run([sys.executable, "-m", "fit", *map(str, args)], capture_output=True,
-                          text=True, cwd=cwd, timeout=600, env={**os.environ, "COLUMNS": "200"})
+    return subprocess.run(
+        [sys.executable, "-m", "fit", *map(str, args)],
+        capture_output=True,
+        check=False,
+        text=True,
+        cwd=cwd,
+        timeout=600,
+        env={**os.environ, "COLUMNS": "200"},
+    )
 
 
 def test_bundled_config_loads():
@@ -57,12 +68,18 @@ def test_render_writes_exr_and_png(tmp_path):
 @pytest.mark.parametrize(
     "edit, message",
     [
-        (("[material]\n", "[material]\nroughnes = 0.2\n"), "unknown key material.roughnes for glaze"),
+        (
+            ("[material]\n", "[material]\nroughnes = 0.2\n"),
+            "unknown key material.roughnes for glaze",
+        ),
         (("ior = 1.52", "ior = 0.9"), "material: ior = 0.9 is outside its bounds [1.01, 3.0]"),
-        (("fresnel = \"schlick\"", "fresnel = \"fast\""), "material.fresnel = 'fast'; choose one of"),
+        (('fresnel = "schlick"', 'fresnel = "fast"'), "material.fresnel = 'fast'; choose one of"),
         (("fov_x_deg = 36.0", "fov = 36.0"), "unknown key(s) fov in [scene.cameras[0]]"),
         (("spp = 256", "spp = 0"), "render.spp = 0 must be a positive integer"),
-        (("geometry = \"sphere\"", "geometry = \"cup.obj\""), "scene.geometry 'cup.obj' does not exist"),
+        (
+            ('geometry = "sphere"', 'geometry = "cup.obj"'),
+            "scene.geometry 'cup.obj' does not exist",
+        ),
         (("[render]", "[rendr]"), "unknown table(s) rendr"),
     ],
 )

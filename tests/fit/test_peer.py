@@ -24,8 +24,10 @@ PIXEL_TOL = 0.045
 def peer(shared_data):
     scene = load_peer_scene(shared_data / "peer-cycles" / "sphere-blue" / "scene.json")
     targets = [read_image(p)[..., :3] for p in scene.meta["images"]]
-    coverage = [render(mi.load_dict(coverage_dict(scene, v, 64)), 64)[..., 0]
-                for v in range(len(scene.cameras))]
+    coverage = [
+        render(mi.load_dict(coverage_dict(scene, v, 64)), 64)[..., 0]
+        for v in range(len(scene.cameras))
+    ]
     return scene, targets, coverage
 
 
@@ -48,7 +50,7 @@ def test_glaze_matches_cycles(peer, fresnel, radiance_tol):
     alone would miss a lobe of the wrong width)."""
     scene, targets, coverage = peer
     bsdf = glaze_at_truth(scene.meta["material"], fresnel)
-    for view, (target, cover) in enumerate(zip(targets, coverage)):
+    for view, (target, cover) in enumerate(zip(targets, coverage, strict=True)):
         image = render(mi.load_dict(scene_dict(scene, bsdf, view, SPP)), SPP, seed=view)
         obj, inside = cover > 0, cover > 0.999
         assert inside.sum() > 1000

@@ -9,7 +9,9 @@ import numpy as np
 
 def direction(theta_deg, phi_deg=0.0) -> np.ndarray:
     t, p = np.radians(theta_deg), np.radians(phi_deg)
-    return np.stack(np.broadcast_arrays(np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)), -1)
+    return np.stack(
+        np.broadcast_arrays(np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)), -1
+    )
 
 
 def hemisphere(n: int, seed: int = 1, min_cos: float = 0.0) -> np.ndarray:
@@ -85,6 +87,7 @@ def fd_derivative(bsdf, key: str, value, fn, h: float, channel: int | None = Non
     ulps; divided by the step that bounds how far the quotient can be from the truth besides
     truncation. Returns `(derivative, rounding_error)`, both float64 arrays.
     """
+
     def at(offset):
         v = np.array(value, dtype=float)
         if channel is None:

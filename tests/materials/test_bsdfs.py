@@ -3,11 +3,9 @@ eval_pdf and sample, energy (white furnace), reciprocity, and equality with Mits
 
 from __future__ import annotations
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
-
 from bsdf_checks import albedo, direction, eval_value, hemisphere, interaction, rgb, set_param, vec
 
 WHITE = {"type": "rgb", "value": [1.0, 1.0, 1.0]}
@@ -19,8 +17,13 @@ CASES = {
     "oren_nayar-s0.5": {"type": "oren_nayar", "sigma": 0.5},
     "oren_nayar-s1": {"type": "oren_nayar", "sigma": 1.0},
     **{
-        f"glaze-{c}-a{a}": {"type": "glaze", "coupling": c, "roughness": a, "pigment": PIGMENT,
-                            "sigma": 0.3}
+        f"glaze-{c}-a{a}": {
+            "type": "glaze",
+            "coupling": c,
+            "roughness": a,
+            "pigment": PIGMENT,
+            "sigma": 0.3,
+        }
         for c in ("paper", "reciprocal")
         for a in (0.05, 0.3, 0.8)
     },
@@ -32,6 +35,7 @@ def load(case: str, **overrides) -> mi.BSDF:
 
 
 # Sampling matches pdf ----------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("theta", [15.0, 75.0])
 @pytest.mark.parametrize("case", list(CASES))
@@ -93,8 +97,9 @@ FURNACE_ANGLES = [0.0, 30.0, 60.0, 75.0, 80.0]
 @pytest.mark.parametrize("fresnel", ["schlick", "exact"])
 def test_glaze_furnace_bounded(coupling, fresnel):
     """White pigment: directional albedo <= 1.01 over roughness, ior, sigma and angle."""
-    bsdf = mi.load_dict({"type": "glaze", "coupling": coupling, "fresnel": fresnel,
-                         "pigment": WHITE})
+    bsdf = mi.load_dict(
+        {"type": "glaze", "coupling": coupling, "fresnel": fresnel, "pigment": WHITE}
+    )
     worst = 0.0
     for alpha in (0.01, 0.05, 0.3, 1.0):
         for ior in (1.01, 1.5, 3.0):
@@ -102,7 +107,7 @@ def test_glaze_furnace_bounded(coupling, fresnel):
                 set_param(bsdf, "roughness", alpha)
                 set_param(bsdf, "ior", ior)
                 set_param(bsdf, "sigma", sigma)
-                for theta in FURNACE_ANGLES + [89.99]:
+                for theta in [*FURNACE_ANGLES, 89.99]:
                     worst = max(worst, albedo(bsdf, theta, n=1 << 16)[0])
     assert worst <= 1.01
 
@@ -119,8 +124,16 @@ def test_glaze_furnace_white_at_ior_1(coupling, alpha):
     for fresnel, angles in (("exact", [0.0, 15.0, 45.0, 75.0]), ("schlick", [0.0, 15.0, 45.0])):
         if fresnel == "schlick" and coupling == "reciprocal":
             continue
-        bsdf = mi.load_dict({"type": "glaze", "coupling": coupling, "fresnel": fresnel,
-                             "pigment": WHITE, "ior": 1.01, "roughness": alpha})
+        bsdf = mi.load_dict(
+            {
+                "type": "glaze",
+                "coupling": coupling,
+                "fresnel": fresnel,
+                "pigment": WHITE,
+                "ior": 1.01,
+                "roughness": alpha,
+            }
+        )
         for theta in angles:
             assert albedo(bsdf, theta)[0] == pytest.approx(1.0, abs=0.01), (fresnel, theta)
 
@@ -143,6 +156,7 @@ def test_oren_nayar_furnace():
 
 
 # Reciprocity and references ----------------------------------------------------------------------
+
 
 @pytest.mark.parametrize(
     "case", ["oren_nayar-s0.5", "oren_nayar-s1", "glaze-reciprocal-a0.05", "glaze-reciprocal-a0.3"]
@@ -171,8 +185,9 @@ def test_oren_nayar_sigma0_equals_diffuse():
     ours = mi.load_dict({"type": "oren_nayar", "sigma": 0.0, "reflectance": PIGMENT})
     ref = mi.load_dict({"type": "diffuse", "reflectance": PIGMENT})
     wi, wo = hemisphere(2048, seed=1), hemisphere(2048, seed=2)
-    np.testing.assert_allclose(eval_value(ours, wi, wo), eval_value(ref, wi, wo), rtol=1e-5,
-                               atol=1e-7)
+    np.testing.assert_allclose(
+        eval_value(ours, wi, wo), eval_value(ref, wi, wo), rtol=1e-5, atol=1e-7
+    )
 
 
 def oren_nayar_reference(wi, wo, sigma):
@@ -202,15 +217,26 @@ def test_glaze_lobes_follow_the_formula():
     d = np.exp((nh**2 - 1) / (alpha**2 * nh**2)) / (np.pi * alpha**2 * nh**4)
     g = np.minimum(1, np.minimum(2 * nh * nv / vh, 2 * nh * nl / vh))
     f0 = ((ior - 1) / (ior + 1)) ** 2
-    fr = lambda c: f0 + (1 - f0) * (1 - c) ** 5  # noqa: E731
+
+    def fr(c):
+        return f0 + (1 - f0) * (1 - c) ** 5
+
     spec = d * g / (4 * nl * nv)
     rho = pig / np.pi * oren_nayar_reference(wi, wo, sigma)[:, None]
     for coupling, f in (
         ("paper", (1 - fr(nv))[:, None] * rho + (fr(nv) * spec)[:, None]),
         ("reciprocal", ((1 - fr(nl)) * (1 - fr(nv)))[:, None] * rho + (fr(vh) * spec)[:, None]),
     ):
-        bsdf = mi.load_dict({"type": "glaze", "coupling": coupling, "roughness": alpha, "ior": ior,
-                             "sigma": sigma, "pigment": PIGMENT})
+        bsdf = mi.load_dict(
+            {
+                "type": "glaze",
+                "coupling": coupling,
+                "roughness": alpha,
+                "ior": ior,
+                "sigma": sigma,
+                "pigment": PIGMENT,
+            }
+        )
         np.testing.assert_allclose(eval_value(bsdf, wi, wo), f * nl[:, None], rtol=2e-4)
 
 
@@ -234,6 +260,7 @@ def test_disabled_lobes():
 
 # Construction ------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize(
     "props, message",
     [
@@ -242,8 +269,10 @@ def test_disabled_lobes():
         ({"type": "glaze", "coupling": "blender"}, "coupling = 'blender'; choose one of paper"),
         ({"type": "glaze", "fresnel": "fast"}, "fresnel = 'fast'; choose one of schlick, exact"),
         ({"type": "oren_nayar", "sigma": 2.0}, "sigma = 2.0 is outside its bounds"),
-        ({"type": "oren_nayar", "reflectance": {"type": "rgb", "value": [1.5, 0, 0]}},
-         "Invalid RGB reflectance value [1.5, 0, 0]"),  # Mitsuba's own check
+        (
+            {"type": "oren_nayar", "reflectance": {"type": "rgb", "value": [1.5, 0, 0]}},
+            "Invalid RGB reflectance value [1.5, 0, 0]",
+        ),  # Mitsuba's own check
     ],
 )
 def test_bad_properties_are_clear_errors(props, message):

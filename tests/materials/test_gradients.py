@@ -7,7 +7,6 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
-
 from bsdf_checks import (
     ad_derivative,
     assert_derivative,
@@ -19,10 +18,16 @@ from bsdf_checks import (
     set_param,
     vec,
 )
+
 from materials.params import BOUND_MARGIN, GLAZE_PARAMS, OREN_NAYAR_PARAMS
 
-MID = {"sigma": 0.3, "roughness": 0.3, "ior": 1.5, "pigment": [0.3, 0.5, 0.7],
-       "reflectance": [0.3, 0.5, 0.7]}
+MID = {
+    "sigma": 0.3,
+    "roughness": 0.3,
+    "ior": 1.5,
+    "pigment": [0.3, 0.5, 0.7],
+    "reflectance": [0.3, 0.5, 0.7],
+}
 
 
 def traverse_key(spec) -> str:
@@ -55,8 +60,11 @@ def eval_fn(wi, wo):
 
 BSDFS = {
     "oren_nayar": ("oren_nayar", {}),
-    **{f"glaze-{c}-{f}": ("glaze", {"coupling": c, "fresnel": f})
-       for c in ("paper", "reciprocal") for f in ("schlick", "exact")},
+    **{
+        f"glaze-{c}-{f}": ("glaze", {"coupling": c, "fresnel": f})
+        for c in ("paper", "reciprocal")
+        for f in ("schlick", "exact")
+    },
 }
 
 
@@ -88,16 +96,28 @@ def extreme_directions():
         near = mirror + rng.normal(scale=0.02, size=(64, 3))
         near[:, 2] = np.abs(near[:, 2]) + 1e-3
         near /= np.linalg.norm(near, axis=1, keepdims=True)
-        wo = np.concatenate([hemisphere(128, seed=32), [mirror], near,
-                             direction(np.degrees(np.arccos(1e-4)), [0.0, 90.0, 200.0])])
+        wo = np.concatenate(
+            [
+                hemisphere(128, seed=32),
+                [mirror],
+                near,
+                direction(np.degrees(np.arccos(1e-4)), [0.0, 90.0, 200.0]),
+            ]
+        )
         wis.append(np.repeat(wi[None], len(wo), axis=0))
         wos.append(wo)
     return np.concatenate(wis), np.concatenate(wos)
 
 
 EXTREMES = [
-    ("roughness", 0.01), ("roughness", 1.0), ("ior", 1.01), ("ior", 3.0), ("sigma", 0.0),
-    ("sigma", 1.0), ("pigment", [0.0, 0.0, 0.0]), ("pigment", [1.0, 1.0, 1.0]),
+    ("roughness", 0.01),
+    ("roughness", 1.0),
+    ("ior", 1.01),
+    ("ior", 3.0),
+    ("sigma", 0.0),
+    ("sigma", 1.0),
+    ("pigment", [0.0, 0.0, 0.0]),
+    ("pigment", [1.0, 1.0, 1.0]),
 ]
 
 
@@ -107,8 +127,9 @@ def test_glaze_extremes(name, key, value):
     """One parameter at a bound, the others mid-range: eval, sample weights and all derivatives
     finite; each derivative agrees with finite differences, so it is not silently zero."""
     _, options = BSDFS[name]
-    bsdf = make("glaze", **{**options, key: {"type": "rgb", "value": value}
-                            if key == "pigment" else value})
+    bsdf = make(
+        "glaze", **{**options, key: {"type": "rgb", "value": value} if key == "pigment" else value}
+    )
     check_extreme(bsdf, GLAZE_PARAMS, {**MID, key: value})
 
 
@@ -156,8 +177,13 @@ def check_extreme(bsdf, specs, values):
             ad_e = ad_derivative(bsdf, key, value, lambda b: b.eval(ctx, si, sampled_wo), channel)
             assert np.all(np.isfinite(ad_w)), where
             ok = pdf[:, 0] > 0
-            np.testing.assert_allclose(ad_w[ok], ad_e[ok] / pdf[ok], rtol=1e-3,
-                                       atol=1e-5 * (np.abs(ad_w).max() + 1e-12), err_msg=where)
+            np.testing.assert_allclose(
+                ad_w[ok],
+                ad_e[ok] / pdf[ok],
+                rtol=1e-3,
+                atol=1e-5 * (np.abs(ad_w).max() + 1e-12),
+                err_msg=where,
+            )
 
 
 @pytest.mark.parametrize("kind", ["oren_nayar", "glaze"])

@@ -31,8 +31,10 @@ def test_transform_round_trip(spec):
 @pytest.mark.parametrize("spec", ALL, ids=lambda s: s.key)
 def test_start_at_bound_moves_inside(spec):
     span = spec.upper - spec.lower
-    for bound, inside in ((spec.lower, spec.lower + BOUND_MARGIN * span),
-                          (spec.upper, spec.upper - BOUND_MARGIN * span)):
+    for bound, inside in (
+        (spec.lower, spec.lower + BOUND_MARGIN * span),
+        (spec.upper, spec.upper - BOUND_MARGIN * span),
+    ):
         u = spec.to_unconstrained(bound)
         assert np.isfinite(u)
         assert spec.from_unconstrained(u) == pytest.approx(inside, rel=1e-9)
@@ -48,20 +50,24 @@ def test_transform_works_with_jax():
 def test_bad_declarations():
     with pytest.raises(ValueError, match="lower 1 must be < upper 0"):
         ParamSpec("x", 0.5, 1, 0, "sigmoid", "", "")
-    with pytest.raises(ValueError, match="default 2.0 is outside"):
+    with pytest.raises(ValueError, match=r"default 2\.0 is outside"):
         ParamSpec("x", 2.0, 0, 1, "sigmoid", "", "")
     with pytest.raises(ValueError, match="declared twice"):
         spec_table(GLAZE_PARAMS["ior"], GLAZE_PARAMS["ior"])
 
 
 def test_check_names_the_place():
-    with pytest.raises(ValueError, match=r"cup.toml: material: ior = 0.5 is outside .*\[1.01, 3.0\]"):
+    with pytest.raises(
+        ValueError, match=r"cup.toml: material: ior = 0.5 is outside .*\[1.01, 3.0\]"
+    ):
         GLAZE_PARAMS["ior"].check(0.5, "cup.toml: material")
     with pytest.raises(ValueError, match="not finite"):
         GLAZE_PARAMS["ior"].check(float("nan"), "here")
 
 
-@pytest.mark.parametrize("plugin, specs", [("glaze", GLAZE_PARAMS), ("oren_nayar", OREN_NAYAR_PARAMS)])
+@pytest.mark.parametrize(
+    "plugin, specs", [("glaze", GLAZE_PARAMS), ("oren_nayar", OREN_NAYAR_PARAMS)]
+)
 def test_traverse_exposes_every_declared_parameter(plugin, specs):
     params = mi.traverse(mi.load_dict({"type": plugin}))
     keys = {f"{s.key}.value" if s.kind == "rgb" else s.key for s in specs.values()}
@@ -80,6 +86,8 @@ def test_import_has_no_side_effects():
         "assert mi.variant() is None, mi.variant()\n"
         "try:\n    materials.register()\nexcept RuntimeError as e:\n    print(e)\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False
+    )
     assert out.returncode == 0, out.stderr
     assert "set a Mitsuba variant first" in out.stdout
