@@ -10,7 +10,7 @@ from .params import ParamSpec
 
 def read_float(props: mi.Properties, spec: ParamSpec, plugin: str) -> mi.Float:
     """A declared scalar as an opaque `mi.Float` (its value changes between renders)."""
-    value = float(props.get(spec.key, spec.default)) if spec.key in props else float(spec.default)
+    value = float(props.get(spec.key, float(spec.default)))
     spec.check(value, f"{plugin} plugin")
     return dr.opaque(mi.Float, value)
 
@@ -29,7 +29,7 @@ def read_texture(props: mi.Properties, spec: ParamSpec, plugin: str) -> mi.Textu
 
 def read_choice(props: mi.Properties, key: str, choices: tuple[str, ...], plugin: str) -> str:
     """A string option that must be one of `choices` (the first is the default)."""
-    value = props.get(key, choices[0]) if key in props else choices[0]
+    value = props.get(key, choices[0])
     if value not in choices:
         raise ValueError(f"{plugin} plugin: {key} = {value!r}; choose one of {', '.join(choices)}")
     return value
