@@ -10,13 +10,18 @@ __all__ = ["GLAZE_PARAMS", "OREN_NAYAR_PARAMS", "ParamSpec", "register"]
 
 
 def register() -> None:
-    """Register `oren_nayar` and `glaze` with the current Mitsuba variant."""
+    """Register `oren_nayar`, `glaze`, `layered` (BSDFs) and `fbm` (texture) with the current
+    Mitsuba variant."""
     import mitsuba as mi
 
     if mi.variant() is None:
         raise RuntimeError("materials.register(): set a Mitsuba variant first (mi.set_variant)")
+    from .fbm import FbmMask
     from .glaze import Glaze
+    from .layered import Layered
     from .oren_nayar import OrenNayar
 
     mi.register_bsdf("oren_nayar", OrenNayar)
     mi.register_bsdf("glaze", Glaze)
+    mi.register_bsdf("layered", Layered)
+    mi.register_texture("fbm", FbmMask)

@@ -33,3 +33,13 @@ def read_choice(props: mi.Properties, key: str, choices: tuple[str, ...], plugin
     if value not in choices:
         raise ValueError(f"{plugin} plugin: {key} = {value!r}; choose one of {', '.join(choices)}")
     return value
+
+
+def read_int(
+    props: mi.Properties, key: str, default: int, lower: int, upper: int, plugin: str
+) -> int:
+    """A structural integer option (not differentiable), checked against `[lower, upper]`."""
+    value = props.get(key, default)
+    if int(value) != value or not lower <= value <= upper:
+        raise ValueError(f"{plugin} plugin: {key} = {value}; use an integer in [{lower}, {upper}]")
+    return int(value)

@@ -132,5 +132,55 @@ ROUGHNESS = ParamSpec(
 )
 IOR = ParamSpec("ior", 1.5, 1.01, 3.0, "sigmoid", "", "index of refraction of the glaze coat")
 
+PIGMENT_NOISE = ParamSpec(
+    "pigment_noise",
+    0.0,
+    0.0,
+    1.0,
+    "sigmoid",
+    "",
+    "relative variation of the pigment with an fbm noise (0 = off, not built)",
+)
+NORMAL_NOISE = ParamSpec(
+    "normal_noise",
+    0.0,
+    0.0,
+    0.2,
+    "sigmoid",
+    "",
+    "slope of the fbm perturbation of the glaze's normal (0 = off, not built)",
+)
+THRESHOLD = ParamSpec(
+    "threshold",
+    0.5,
+    0.0,
+    1.0,
+    "sigmoid",
+    "",
+    "fbm level at which a mask is half on; the noise spans about [0.2, 0.8], mean 0.5",
+)
+SOFTNESS = ParamSpec(
+    "softness",
+    0.05,
+    0.005,
+    0.5,
+    "sigmoid",
+    "",
+    "width of a mask's edge in fbm units (sigmoid scale)",
+)
+BUMP = ParamSpec(
+    "bump",
+    0.0,
+    0.0,
+    0.01,
+    "sigmoid",
+    "m",
+    "thickness of each masked layer as a height field (bump mapping); 0 = off, not built",
+)
+
 OREN_NAYAR_PARAMS = spec_table(REFLECTANCE, SIGMA)
 GLAZE_PARAMS = spec_table(PIGMENT, SIGMA, ROUGHNESS, IOR)
+#: Declared, but built only when enabled (a non-zero value in the config).
+GLAZE_OPTIONAL_PARAMS = spec_table(PIGMENT_NOISE, NORMAL_NOISE)
+MASK_PARAMS = spec_table(THRESHOLD, SOFTNESS)
+LAYERED_PARAMS = spec_table(BUMP)

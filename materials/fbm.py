@@ -1,0 +1,68 @@
+"""`fbm`: a layer mask `m(uv) = texture(uv) * sigmoid((fbm(uv * scale) - threshold) / softness)`.
+
+The fbm noise (`materials.noise.fbm`) is evaluated in UV space with a fixed number of octaves and
+a seed, so a mask can be baked to a texture. `texture` is optional (a painted mask, default 1);
+`threshold` and `softness` are differentiable.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from ._plugin import read_float, read_int
+from .noise import fbm
+from .params import MASK_PARAMS
+
+
+class FbmMask(mi.Texture):
+    """Scalar mask texture in [0, 1]. Options: `scale` (noise cells per UV unit, integer so that
+    the noise tiles), `octaves`, `seed`; parameters: see `materials.params.MASK_PARAMS`."""
+
+    PARAMS = MASK_PARAMS
+
+    def __init__(self, props: mi.Properties):
+        mi.Texture.__init__(self, props)
+        self.scale = read_int(props, "scale", 4, 1, 4096, "fbm")
+        self.octaves = read_int(props, "octaves", 4, 1, 12, "fbm")
+        self.seed = read_int(props, "seed", 0, 0, 2**31 - 1, "fbm")
+        self.threshold = read_float(props, self.PARAMS["threshold"], "fbm")
+        self.softness = read_float(props, self.PARAMS["softness"], "fbm")
+        self.texture = props.get_texture("texture") if "texture" in props else None
+
+    def noise(self, uv):
+        """The raw fbm value (about [0, 1]) at `uv`."""
+        return fbm(uv, self.scale, self.octaves, self.seed)
+
+    def eval_1(self, si, active=True):
+        value = dr.rcp(1.0 + dr.exp((self.threshold - self.noise(si.uv)) / self.softness))
+        if self.texture is not None:
+            value *= self.texture.eval_1(si, active)
+        return value
+
+    def eval(self, si, active=True):
+        return mi.Color3f(self.eval_1(si, active))
+
+    def eval_3(self, si, active=True):
+        return mi.Color3f(self.eval_1(si, active))
+
+    def mean(self):
+        return 0.5
+
+    def is_spatially_varying(self):
+        return True
+
+    def traverse(self, callback):
+        callback.put("threshold", self.threshold, mi.ParamFlags.Differentiable)
+        callback.put("softness", self.softness, mi.ParamFlags.Differentiable)
+        if self.texture is not None:
+            callback.put("texture", self.texture, mi.ParamFlags.Differentiable)
+
+    def parameters_changed(self, keys):
+        dr.make_opaque(self.threshold, self.softness)
+
+    def to_string(self):
+        return (
+            f"FbmMask[scale={self.scale}, octaves={self.octaves}, seed={self.seed}, "
+            f"threshold={self.threshold}, softness={self.softness}]"
+        )
