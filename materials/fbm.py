@@ -35,7 +35,10 @@ class FbmMask(mi.Texture):
         return fbm(uv, self.scale, self.octaves, self.seed)
 
     def eval_1(self, si, active=True):
-        value = dr.rcp(1.0 + dr.exp((self.threshold - self.noise(si.uv)) / self.softness))
+        # sigmoid((f - t) / s); the clip keeps exp and its derivative finite for sharp edges
+        # (sigmoid(+-40) is 0 or 1 to float32 precision anyway)
+        x = dr.clip((self.threshold - self.noise(si.uv)) / self.softness, -40.0, 40.0)
+        value = dr.rcp(1.0 + dr.exp(x))
         if self.texture is not None:
             value *= self.texture.eval_1(si, active)
         return value

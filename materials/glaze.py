@@ -6,7 +6,14 @@ With `v = wi` (towards the viewer), `l = wo`, `spec = D G / (4 (n.l)(n.v))` and
 - `coupling = "paper"` (the paper's, Blender's Fresnel-mix): `f = (1 - F(n.v)) rho_d + F(n.v) spec`;
 - `coupling = "reciprocal"`: `f = F(v.h) spec + (1 - F(n.l)) (1 - F(n.v)) rho_d`;
 
-with `F` Schlick's (`fresnel = "schlick"`) or the exact dielectric one (`"exact"`). Sampling picks a
+with `F` Schlick's (`fresnel = "schlick"`) or the exact dielectric one (`"exact"`).
+
+The paper's two noises are off unless asked for, and then they are declared parameters:
+`pigment_noise` scales the pigment by `1 + a (2 fbm(uv) - 1)`, and `normal_noise` tilts the coat's
+normal by `a` times the slope of an fbm height (per noise cell); their scales (`*_scale`, noise
+cells per UV unit) and `noise_seed` are fixed options.
+
+Sampling picks a
 lobe with probability from an estimate of the lobes' weights, then samples Beckmann half-vectors
 (Walter et al. 2007) or a cosine-weighted direction; `pdf` is the matching mixture. Sampling
 decisions are detached from the AD graph; the returned weight is `f cos / detach(pdf)`.
@@ -17,9 +24,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ._plugin import read_choice, read_float, read_texture
+from ._plugin import read_choice, read_float, read_int, read_texture
 from .microfacet import beckmann_d, cook_torrance_g, fresnel, oren_nayar, sample_beckmann
-from .params import GLAZE_PARAMS
+from .noise import fbm
+from .params import GLAZE_OPTIONAL_PARAMS, GLAZE_PARAMS
 
 COUPLINGS = ("paper", "reciprocal")
 FRESNELS = ("schlick", "exact")
@@ -27,6 +35,9 @@ _GLOSSY = mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide
 _DIFFUSE = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
 # A lobe is never sampled with probability below this: keeps both lobes reachable for MIS.
 _MIN_LOBE_PROB = 0.05
+# UV step of the finite differences that give the normal noise's slope; octaves of both noises.
+_NOISE_EPS = 1e-4
+_NOISE_OCTAVES = 4
 
 
 class Glaze(mi.BSDF):
@@ -43,8 +54,51 @@ class Glaze(mi.BSDF):
         self.ior = read_float(props, self.PARAMS["ior"], "glaze")
         self.coupling = read_choice(props, "coupling", COUPLINGS, "glaze")
         self.fresnel = read_choice(props, "fresnel", FRESNELS, "glaze")
+        optional = GLAZE_OPTIONAL_PARAMS
+        self.pigment_noise = self.normal_noise = None
+        if "pigment_noise" in props:
+            self.pigment_noise = read_float(props, optional["pigment_noise"], "glaze")
+            self.pigment_noise_scale = read_int(props, "pigment_noise_scale", 8, 1, 4096, "glaze")
+        if "normal_noise" in props:
+            self.normal_noise = read_float(props, optional["normal_noise"], "glaze")
+            self.normal_noise_scale = read_int(props, "normal_noise_scale", 16, 1, 4096, "glaze")
+        self.noise_seed = read_int(props, "noise_seed", 0, 0, 2**31 - 1, "glaze")
         self.m_components = [_GLOSSY, _DIFFUSE]
         self.m_flags = _GLOSSY | _DIFFUSE
+        if self.pigment_noise is not None or self.normal_noise is not None:
+            self.m_flags |= mi.BSDFFlags.SpatiallyVarying
+
+    # Noises ---------------------------------------------------------------------------------------
+
+    def _pigment(self, si, active):
+        pigment = self.pigment.eval(si, active)
+        if self.pigment_noise is None:
+            return pigment
+        noise = fbm(si.uv, self.pigment_noise_scale, _NOISE_OCTAVES, self.noise_seed)
+        return dr.clip(pigment * (1.0 + self.pigment_noise * (2.0 * noise - 1.0)), 0.0, 1.0)
+
+    def _coat_frame(self, si):
+        """The noise-tilted normal's frame in local coordinates, or None without normal noise."""
+        if self.normal_noise is None:
+            return None
+        scale, seed = self.normal_noise_scale, self.noise_seed + 1
+        f0 = fbm(si.uv, scale, _NOISE_OCTAVES, seed)
+        du = fbm(si.uv + mi.Vector2f(_NOISE_EPS, 0.0), scale, _NOISE_OCTAVES, seed) - f0
+        dv = fbm(si.uv + mi.Vector2f(0.0, _NOISE_EPS), scale, _NOISE_OCTAVES, seed) - f0
+        slope = self.normal_noise / (_NOISE_EPS * scale)  # noise slope per cell times amount
+        return mi.Frame3f(dr.normalize(mi.Vector3f(-slope * du, -slope * dv, 1.0)))
+
+    def _in_coat(self, si, wo, active):
+        """(si, wo, active) expressed in the coat's frame (unchanged without normal noise)."""
+        frame = self._coat_frame(si)
+        if frame is None:
+            return si, wo, active
+        tilted = mi.SurfaceInteraction3f(si)
+        tilted.wi = frame.to_local(si.wi)
+        wo_t = frame.to_local(wo)
+        active = active & (mi.Frame3f.cos_theta(tilted.wi) * mi.Frame3f.cos_theta(si.wi) > 0)
+        active &= mi.Frame3f.cos_theta(wo_t) * mi.Frame3f.cos_theta(wo) > 0
+        return tilted, wo_t, active
 
     # Lobes ----------------------------------------------------------------------------------------
 
@@ -62,7 +116,7 @@ class Glaze(mi.BSDF):
         spec = d * g / (4.0 * dr.maximum(cos_v, 1e-12))
 
         # Diffuse pigment: Oren-Nayar times cos(theta_l)
-        pigment = self.pigment.eval(si, active)
+        pigment = self._pigment(si, active)
         diffuse = pigment * (dr.inv_pi * oren_nayar(wi, wo, self.sigma) * cos_l)
 
         # Fresnel coupling of the two lobes
@@ -85,7 +139,7 @@ class Glaze(mi.BSDF):
             return mi.Float(0.0)
         with dr.suspend_grad():
             f_v = fresnel(mi.Frame3f.cos_theta(si.wi), self.ior, self.fresnel)
-            w_diff = (1.0 - f_v) * dr.mean(self.pigment.eval(si, active))
+            w_diff = (1.0 - f_v) * dr.mean(self._pigment(si, active))
             prob = f_v / dr.maximum(f_v + w_diff, 1e-12)
             return dr.clip(prob, _MIN_LOBE_PROB, 1.0 - _MIN_LOBE_PROB)
 
@@ -115,6 +169,19 @@ class Glaze(mi.BSDF):
     # BSDF interface -------------------------------------------------------------------------------
 
     def sample(self, ctx, si, sample1, sample2, active=True):
+        frame = self._coat_frame(si)
+        if frame is None:
+            return self._sample(ctx, si, sample1, sample2, active)
+        tilted = mi.SurfaceInteraction3f(si)
+        tilted.wi = frame.to_local(si.wi)
+        active &= mi.Frame3f.cos_theta(tilted.wi) * mi.Frame3f.cos_theta(si.wi) > 0
+        bs, weight = self._sample(ctx, tilted, sample1, sample2, active)
+        bs.wo = frame.to_world(bs.wo)
+        valid = mi.Frame3f.cos_theta(bs.wo) > 0
+        bs.pdf = dr.select(valid, bs.pdf, 0.0)
+        return bs, dr.select(valid, weight, 0.0)
+
+    def _sample(self, ctx, si, sample1, sample2, active):
         bs = dr.zeros(mi.BSDFSample3f)
         active &= mi.Frame3f.cos_theta(si.wi) > 0
         with dr.suspend_grad():
@@ -139,22 +206,30 @@ class Glaze(mi.BSDF):
         return bs, dr.select(valid, value / dr.maximum(bs.pdf, 1e-20), 0.0)
 
     def eval(self, ctx, si, wo, active=True):
+        si, wo, active = self._in_coat(si, wo, active)
         spec, diffuse = self._lobes(si, wo, active)
         return self._enabled_value(ctx, spec, diffuse)
 
     def pdf(self, ctx, si, wo, active=True):
+        si, wo, active = self._in_coat(si, wo, active)
         return self._mixture_pdf(ctx, si, wo, active)
 
     def eval_pdf(self, ctx, si, wo, active=True):
-        return self.eval(ctx, si, wo, active), self._mixture_pdf(ctx, si, wo, active)
+        si, wo, active = self._in_coat(si, wo, active)
+        spec, diffuse = self._lobes(si, wo, active)
+        return self._enabled_value(ctx, spec, diffuse), self._mixture_pdf(ctx, si, wo, active)
+
+    def _scalars(self):
+        names = ["sigma", "roughness", "ior", "pigment_noise", "normal_noise"]
+        return {n: getattr(self, n) for n in names if getattr(self, n) is not None}
 
     def traverse(self, callback):
         callback.put("pigment", self.pigment, mi.ParamFlags.Differentiable)
-        for name in ("sigma", "roughness", "ior"):
-            callback.put(name, getattr(self, name), mi.ParamFlags.Differentiable)
+        for name, value in self._scalars().items():
+            callback.put(name, value, mi.ParamFlags.Differentiable)
 
     def parameters_changed(self, keys):
-        dr.make_opaque(self.sigma, self.roughness, self.ior)
+        dr.make_opaque(*self._scalars().values())
 
     def to_string(self):
         return (

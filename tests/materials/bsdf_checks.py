@@ -28,12 +28,19 @@ def vec(a: np.ndarray) -> mi.Vector3f:
     return mi.Vector3f(a[:, 0], a[:, 1], a[:, 2])
 
 
-def interaction(wi: np.ndarray) -> mi.SurfaceInteraction3f:
-    si = dr.zeros(mi.SurfaceInteraction3f, len(np.atleast_2d(wi)))
+def interaction(wi: np.ndarray, uv=None, p=None) -> mi.SurfaceInteraction3f:
+    """Interactions on the plane z = 0 with the world frame as shading frame, `dp/du = x`,
+    `dp/dv = y` (so bump mapping has tangents), at `uv` (N, 2) and positions `p` (N, 3)."""
+    n = len(np.atleast_2d(wi))
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
     si.wi = vec(wi)
-    si.uv = mi.Point2f(0.5, 0.5)
+    si.uv = mi.Point2f(0.5, 0.5) if uv is None else mi.Point2f(uv[:, 0], uv[:, 1])
+    if p is not None:
+        si.p = mi.Point3f(p[:, 0], p[:, 1], p[:, 2])
     si.n = mi.Normal3f(0, 0, 1)
     si.sh_frame = mi.Frame3f(si.n)
+    si.dp_du = mi.Vector3f(1, 0, 0)
+    si.dp_dv = mi.Vector3f(0, 1, 0)
     return si
 
 
