@@ -6,7 +6,6 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
-
 from bsdf_checks import (
     ad_derivative,
     assert_derivative,
@@ -18,6 +17,7 @@ from bsdf_checks import (
     set_param,
     vec,
 )
+
 from materials.noise import fbm
 
 
@@ -63,8 +63,8 @@ def test_fbm_tiles_and_is_deterministic():
         return np.asarray(fbm(mi.Point2f(uv[:, 0], uv[:, 1]), 4, 5, seed))
 
     base = f(uv)
-    np.testing.assert_allclose(f(uv + [1.0, 0.0]), base, atol=1e-5)  # the u = 0/1 seam
-    np.testing.assert_allclose(f(uv + [0.0, 1.0]), base, atol=1e-5)
+    np.testing.assert_allclose(f(uv + np.array([1.0, 0.0])), base, atol=1e-5)  # the u = 0/1 seam
+    np.testing.assert_allclose(f(uv + np.array([0.0, 1.0])), base, atol=1e-5)
     np.testing.assert_array_equal(f(uv), base)
     assert np.abs(f(uv, seed=1) - base).mean() > 0.03
     assert 0.1 < base.min() and base.max() < 0.9 and abs(base.mean() - 0.5) < 0.03
