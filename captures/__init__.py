@@ -1,6 +1,7 @@
 """What the camera saw: scene descriptions, photo sets and their loaders (no Dr.Jit, no JAX)."""
 
-from .peer import CaptureError, load_peer_scene
+from .errors import CaptureError
+from .peer import load_peer_scene
 from .scene import Camera, RectLight, Scene
 from .schema import parse_scene
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
-from .peer import CaptureError
+from .errors import CaptureError
 
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:

@@ -5,11 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .scene import Camera, RectLight, Scene
-
-
-class CaptureError(ValueError):
-    """Bad capture input; the message names the file, the field and the fix."""
+from .errors import CaptureError
+from .scene import Camera, ObjFile, RectLight, Scene
 
 
 def _vec(value, where: str, n: int = 3) -> tuple[float, ...]:
@@ -77,7 +74,7 @@ def load_peer_scene(path: str | Path) -> Scene:
     if not mesh.exists():
         raise CaptureError(f"{path}: mesh {mesh.name!r} does not exist next to it")
     return Scene(
-        geometry=mesh,
+        geometry=ObjFile(mesh),
         cameras=tuple(cameras),
         lights=tuple(lights),
         environment=_vec(doc.get("environment_radiance_rgb", (0, 0, 0)), f"{path}: environment"),

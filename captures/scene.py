@@ -1,7 +1,8 @@
 """The scene a capture was taken in: geometry, cameras, lights, environment (no Dr.Jit, no JAX).
 
-Plain frozen dataclasses with numpy-free tuples at the edges, so that a render config and a capture
-manifest share one description and `fit` turns it into a Mitsuba scene.
+Frozen dataclasses holding plain tuples, so that a render config and a capture manifest share one
+description and `fit` turns it into a Mitsuba scene. Light colours are resolved to linear RGB here
+(from RGB, power or colour temperature), so nothing downstream needs to know how they were given.
 """
 
 from __future__ import annotations
@@ -9,12 +10,50 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .geometry import CupShape
+
 Vec3 = tuple[float, float, float]
+
+
+# Geometry -----------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Sphere:
+    """Mitsuba's analytic sphere (with UVs)."""
+
+    center: Vec3 = (0.0, 0.0, 0.0)
+    radius: float = 1.0
+
+
+@dataclass(frozen=True)
+class Cup:
+    """The procedural cup (`captures.geometry.cup_mesh`)."""
+
+    shape: CupShape = field(default_factory=CupShape)
+
+
+@dataclass(frozen=True)
+class ObjFile:
+    """A triangle mesh from an OBJ file with UVs."""
+
+    path: Path
+
+
+Geometry = Sphere | Cup | ObjFile
+
+
+# Cameras ------------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
 class Camera:
-    """A perspective pinhole camera looking from `origin` at `target`; `fov_x_deg` is horizontal."""
+    """A camera looking from `origin` at `target`.
+
+    `kind` "perspective": horizontal field of view `fov_x_deg`; a thin lens when
+    `aperture_radius` > 0 (metres), focused at `focus_distance` (metres; default: the target).
+    `kind` "orthographic": the view spans `ortho_width` metres horizontally.
+    """
 
     origin: Vec3
     target: Vec3
@@ -22,6 +61,13 @@ class Camera:
     fov_x_deg: float
     width: int
     height: int
+    kind: str = "perspective"
+    aperture_radius: float = 0.0
+    focus_distance: float | None = None
+    ortho_width: float = 1.0
+
+
+# Lights -------------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
@@ -40,12 +86,44 @@ class RectLight:
 
 
 @dataclass(frozen=True)
-class Scene:
-    """Geometry (an OBJ path or the built-in unit `"sphere"`), cameras, lights, environment."""
+class PointLight:
+    """An isotropic point light of radiant `intensity` (linear RGB, W/sr)."""
 
-    geometry: Path | str
+    position: Vec3
+    intensity: Vec3
+
+
+@dataclass(frozen=True)
+class DirectionalLight:
+    """A distant light travelling along `direction`, of `irradiance` (linear RGB, W/m^2)."""
+
+    direction: Vec3
+    irradiance: Vec3
+
+
+Light = RectLight | PointLight | DirectionalLight
+
+
+@dataclass(frozen=True)
+class EnvMap:
+    """An environment map (lat-long image, linear) scaled by `scale`."""
+
+    path: Path
+    scale: float = 1.0
+
+
+# Scene --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Geometry, the views' cameras, lights, an environment (constant RGB radiance or a map), and
+    the integrator (`prb` by default) with its maximum path depth."""
+
+    geometry: Geometry
     cameras: tuple[Camera, ...]
-    lights: tuple[RectLight, ...] = ()
-    environment: Vec3 = (0.0, 0.0, 0.0)
+    lights: tuple[Light, ...] = ()
+    environment: Vec3 | EnvMap = (0.0, 0.0, 0.0)
+    integrator: str = "prb"
     max_depth: int = 8
     meta: dict = field(default_factory=dict, compare=False)

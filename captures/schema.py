@@ -1,18 +1,61 @@
 """Read the `[scene]` table of a TOML config or capture manifest into a `Scene`, strictly:
-unknown or misspelt keys, wrong types and missing fields are errors naming the file and the key."""
+unknown or misspelt keys, wrong types and missing fields are errors naming the file and the key.
+
+```toml
+[scene]
+geometry = "sphere"            # or "cup", or "mesh.obj", or a table: {type = "cup", height = 0.1}
+environment = [0.05, 0.05, 0.06]   # or {type = "envmap", file = "sky.exr", scale = 1.0}
+integrator = "prb"             # prb | path
+max_depth = 8
+
+[[scene.cameras]]
+type = "perspective"           # or "orthographic" (with ortho_width, metres)
+origin = [0, -0.5, 0.2]
+target = [0, 0, 0.05]
+fov_x_deg = 30
+width = 256
+height = 256
+aperture_radius = 0.002        # thin lens (depth of field); focus_distance defaults to the target
+
+[[scene.lights]]
+type = "rectangle"             # rectangle | point | directional
+center = [0.3, -0.3, 0.4]
+target = [0, 0, 0.05]          # or u_axis, v_axis, emit_direction
+size = [0.2, 0.2]
+power = 20.0                   # watts; or radiance = [r, g, b]
+temperature = 3200             # kelvin; or color = [r, g, b]
+```
+"""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
-from .peer import CaptureError
-from .scene import Camera, RectLight, Scene
+import numpy as np
+
+from .color import blackbody_rgb
+from .errors import CaptureError
+from .geometry import CupShape, check_obj_has_uvs
+from .scene import (
+    Camera,
+    Cup,
+    DirectionalLight,
+    EnvMap,
+    ObjFile,
+    PointLight,
+    RectLight,
+    Scene,
+    Sphere,
+)
+
+INTEGRATORS = ("prb", "path")
 
 
-class _Table:
+class Table:
     """A TOML table that knows where it came from and which keys it may hold."""
 
-    def __init__(self, data: dict, file: Path, where: str, known: tuple[str, ...]):
+    def __init__(self, data, file: Path, where: str, known: tuple[str, ...]):
         if not isinstance(data, dict):
             raise CaptureError(f"{file}: [{where}] must be a table")
         unknown = sorted(set(data) - set(known))
@@ -23,6 +66,12 @@ class _Table:
             )
         self.data, self.file, self.where = data, file, where
 
+    def has(self, key) -> bool:
+        return key in self.data
+
+    def error(self, key, problem) -> CaptureError:
+        return CaptureError(f"{self.file}: {self.where}.{key} {problem}")
+
     def _get(self, key, default, required):
         if key not in self.data:
             if required:
@@ -30,94 +79,275 @@ class _Table:
             return default
         return self.data[key]
 
-    def vec(self, key, n=3, default=None):
-        value = self._get(key, default, default is None)
+    def vec(self, key, n=3, default=None, required=None):
+        value = self._get(key, default, default is None if required is None else required)
+        if value is None:
+            return None
         try:
             out = tuple(float(x) for x in value)
         except (TypeError, ValueError):
             out = ()
-        if len(out) != n:
-            raise CaptureError(
-                f"{self.file}: {self.where}.{key} must be {n} numbers, got {value!r}"
-            )
+        if len(out) != n or not all(math.isfinite(x) for x in out):
+            raise self.error(key, f"must be {n} finite numbers, got {value!r}")
         return out
 
-    def number(self, key, kind=float, default=None, minimum=None):
-        value = self._get(key, default, default is None)
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise CaptureError(f"{self.file}: {self.where}.{key} must be a number, got {value!r}")
-        if minimum is not None and value < minimum:
-            raise CaptureError(f"{self.file}: {self.where}.{key} = {value} must be >= {minimum}")
+    def number(self, key, kind=float, default=None, minimum=None, required=None):
+        value = self._get(key, default, default is None if required is None else required)
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise self.error(key, f"must be a number, got {value!r}")
+        if kind is int and int(value) != value:
+            raise self.error(key, f"must be an integer, got {value!r}")
+        if not math.isfinite(value) or (minimum is not None and value < minimum):
+            raise self.error(key, f"= {value} must be >= {minimum}")
         return kind(value)
 
-    def string(self, key, default=None):
-        value = self._get(key, default, default is None)
-        if not isinstance(value, str):
-            raise CaptureError(f"{self.file}: {self.where}.{key} must be a string, got {value!r}")
+    def positive(self, key, default=None, required=None):
+        value = self.number(key, float, default, 0.0, required)
+        if value is not None and value <= 0:
+            raise self.error(key, f"= {value} must be > 0")
         return value
 
-    def list(self, key):
+    def string(self, key, default=None, choices=None):
+        value = self._get(key, default, default is None)
+        if not isinstance(value, str):
+            raise self.error(key, f"must be a string, got {value!r}")
+        if choices is not None and value not in choices:
+            raise self.error(key, f"= {value!r}; choose one of {', '.join(choices)}")
+        return value
+
+    def boolean(self, key, default):
+        value = self._get(key, default, False)
+        if not isinstance(value, bool):
+            raise self.error(key, f"must be true or false, got {value!r}")
+        return value
+
+    def path(self, key, default=None):
+        value = self.string(key, default)
+        path = (self.file.parent / value).resolve()
+        if not path.exists():
+            raise self.error(key, f"= {value!r} does not exist (relative to {self.file.parent})")
+        return path
+
+    def tables(self, key):
         value = self._get(key, [], False)
         if not isinstance(value, list):
-            raise CaptureError(f"{self.file}: {self.where}.{key} must be an array of tables")
+            raise self.error(key, "must be an array of tables ([[...]])")
         return value
+
+
+# Geometry -----------------------------------------------------------------------------------------
+
+_CUP_KEYS = ("height", "radius_top", "radius_bottom", "wall", "base", "fillet", "segments")
+
+
+def _geometry(value, file: Path):
+    if isinstance(value, str):
+        value = {"type": value} if value in ("sphere", "cup") else {"type": "obj", "file": value}
+    t = Table(
+        value, file, "scene.geometry", ("type", "file", "center", "radius", "handle", *_CUP_KEYS)
+    )
+    kind = t.string("type", choices=("sphere", "cup", "obj"))
+    if kind == "sphere":
+        return Sphere(t.vec("center", default=(0.0, 0.0, 0.0)), t.positive("radius", 1.0))
+    if kind == "cup":
+        defaults = CupShape()
+        values = {k: t.positive(k, getattr(defaults, k)) for k in _CUP_KEYS if k != "segments"}
+        values["segments"] = t.number("segments", int, defaults.segments, 8)
+        try:
+            return Cup(CupShape(**values, handle=t.boolean("handle", True)))
+        except ValueError as err:
+            raise CaptureError(f"{file}: scene.geometry: {err}") from None
+    path = t.path("file")
+    if path.suffix.lower() != ".obj":
+        raise t.error("file", f"= {path.name!r}: only OBJ meshes are read")
+    check_obj_has_uvs(path)
+    return ObjFile(path)
+
+
+# Cameras ------------------------------------------------------------------------------------------
+
+
+def _camera(item, file: Path, i: int) -> Camera:
+    c = Table(
+        item,
+        file,
+        f"scene.cameras[{i}]",
+        (
+            "type",
+            "origin",
+            "target",
+            "up",
+            "fov_x_deg",
+            "width",
+            "height",
+            "aperture_radius",
+            "focus_distance",
+            "ortho_width",
+        ),
+    )
+    kind = c.string("type", "perspective", ("perspective", "orthographic"))
+    origin, target = c.vec("origin"), c.vec("target")
+    if np.linalg.norm(np.subtract(target, origin)) == 0:
+        raise c.error("target", "equals origin: the camera has no viewing direction")
+    camera = Camera(
+        origin=origin,
+        target=target,
+        up=c.vec("up", default=(0.0, 0.0, 1.0)),
+        fov_x_deg=c.number("fov_x_deg", required=kind == "perspective", default=40.0),
+        width=c.number("width", int, minimum=1),
+        height=c.number("height", int, minimum=1),
+        kind=kind,
+        aperture_radius=c.number("aperture_radius", default=0.0, minimum=0.0),
+        focus_distance=c.positive("focus_distance", required=False),
+        ortho_width=c.positive("ortho_width", required=kind == "orthographic", default=1.0),
+    )
+    if kind == "perspective" and not 0 < camera.fov_x_deg < 180:
+        raise c.error("fov_x_deg", f"= {camera.fov_x_deg} must be in (0, 180)")
+    if kind == "orthographic" and (c.has("fov_x_deg") or c.has("aperture_radius")):
+        raise c.error("type", "= 'orthographic' takes ortho_width, not fov_x_deg/aperture_radius")
+    return camera
+
+
+# Lights -------------------------------------------------------------------------------------------
+
+
+def _colour(t: Table) -> np.ndarray:
+    """`color` (RGB) or `temperature` (kelvin, luminance 1), default white."""
+    if t.has("color") and t.has("temperature"):
+        raise t.error("color", "and temperature both given; give one")
+    if t.has("temperature"):
+        try:
+            return np.array(blackbody_rgb(t.positive("temperature")))
+        except ValueError as err:
+            raise t.error("temperature", f"{err}") from None
+    colour = np.array(t.vec("color", default=(1.0, 1.0, 1.0)))
+    if np.any(colour < 0):
+        raise t.error("color", "must not be negative")
+    return colour
+
+
+def _amount(t: Table, direct: str, per_watt: float | None) -> tuple[float, float, float]:
+    """A light's RGB amount: `direct` given as RGB (or a number times the colour), or `power`
+    (watts) times the colour times `per_watt`."""
+    given = [k for k in (direct, "power") if t.has(k) and (k == direct or per_watt is not None)]
+    if len(given) != 1:
+        options = f"{direct} or power" if per_watt is not None else direct
+        raise CaptureError(f"{t.file}: [{t.where}] needs exactly one of {options}")
+    if given[0] == "power":
+        value = t.positive("power") * per_watt * _colour(t)
+    elif isinstance(t.data[direct], int | float):
+        value = t.number(direct, minimum=0.0) * _colour(t)
+    else:
+        if t.has("color") or t.has("temperature"):
+            raise t.error(direct, "is RGB already; drop color/temperature or give a number")
+        value = np.array(t.vec(direct))
+    if np.any(value < 0) or not np.any(value > 0):
+        raise t.error(given[0], "must be positive")
+    return tuple(float(x) for x in value)
+
+
+def _frame(t: Table):
+    """(u, v, n) of a rectangle light: given, or facing `target` (with `up`)."""
+    if t.has("target"):
+        n = np.subtract(t.vec("target"), t.vec("center"))
+        if np.linalg.norm(n) == 0:
+            raise t.error("target", "equals center")
+        n /= np.linalg.norm(n)
+        up = np.array(t.vec("up", default=(0.0, 0.0, 1.0)))
+        u = np.cross(up, n)
+        if np.linalg.norm(u) < 1e-6:
+            u = np.cross([1.0, 0.0, 0.0], n)
+        u /= np.linalg.norm(u)
+        v = np.cross(u, n)  # so that n = -(u x v), the peers' convention
+        return tuple(u), tuple(v), tuple(n)
+    u, v, n = (np.array(t.vec(k)) for k in ("u_axis", "v_axis", "emit_direction"))
+    for key, vec in (("u_axis", u), ("v_axis", v), ("emit_direction", n)):
+        if abs(np.linalg.norm(vec) - 1) > 1e-3:
+            raise t.error(key, "must be a unit vector")
+    if abs(u @ v) > 1e-3 or abs(u @ n) > 1e-3 or abs(v @ n) > 1e-3:
+        raise CaptureError(
+            f"{t.file}: [{t.where}] u_axis, v_axis, emit_direction must be orthogonal"
+        )
+    return tuple(u), tuple(v), tuple(n)
+
+
+def _light(item, file: Path, i: int):
+    where = f"scene.lights[{i}]"
+    kind = item.get("type", "rectangle") if isinstance(item, dict) else None
+    colour_keys = ("color", "temperature")
+    if kind == "rectangle":
+        t = Table(
+            item,
+            file,
+            where,
+            (
+                "type",
+                "center",
+                "target",
+                "up",
+                "u_axis",
+                "v_axis",
+                "emit_direction",
+                "size",
+                "radiance",
+                "power",
+                *colour_keys,
+            ),
+        )
+        size = t.vec("size", 2)
+        if min(size) <= 0:
+            raise t.error("size", "must be positive")
+        u, v, n = _frame(t)
+        area = size[0] * size[1]
+        radiance = _amount(t, "radiance", 1.0 / (math.pi * area))
+        return RectLight(t.vec("center"), u, v, size, n, radiance)
+    if kind == "point":
+        t = Table(item, file, where, ("type", "position", "intensity", "power", *colour_keys))
+        return PointLight(t.vec("position"), _amount(t, "intensity", 1.0 / (4 * math.pi)))
+    if kind == "directional":
+        t = Table(item, file, where, ("type", "direction", "irradiance", *colour_keys))
+        direction = np.array(t.vec("direction"))
+        if np.linalg.norm(direction) == 0:
+            raise t.error("direction", "must not be zero")
+        return DirectionalLight(
+            tuple(direction / np.linalg.norm(direction)), _amount(t, "irradiance", None)
+        )
+    raise CaptureError(f"{file}: {where}.type = {kind!r}; choose rectangle, point or directional")
+
+
+def _environment(value, file: Path):
+    if not isinstance(value, dict):
+        t = Table({"radiance": value}, file, "scene", ("radiance",))
+        return t.vec("radiance")
+    t = Table(value, file, "scene.environment", ("type", "radiance", "file", "scale"))
+    if t.string("type", choices=("constant", "envmap")) == "constant":
+        return t.vec("radiance")
+    return EnvMap(t.path("file"), t.positive("scale", 1.0))
 
 
 def parse_scene(data: dict, file: Path) -> Scene:
     """A `Scene` from the `[scene]` table of `file` (relative paths resolve against its folder)."""
-    t = _Table(data, file, "scene", ("geometry", "cameras", "lights", "environment", "max_depth"))
-    geometry = t.string("geometry")
-    if geometry != "sphere":
-        path = (file.parent / geometry).resolve()
-        if not path.exists():
-            raise CaptureError(f"{file}: scene.geometry {geometry!r} does not exist")
-        geometry = path
-    cameras = []
-    for i, item in enumerate(t.list("cameras")):
-        c = _Table(
-            item,
-            file,
-            f"scene.cameras[{i}]",
-            ("origin", "target", "up", "fov_x_deg", "width", "height"),
-        )
-        cameras.append(
-            Camera(
-                origin=c.vec("origin"),
-                target=c.vec("target"),
-                up=c.vec("up", default=(0.0, 0.0, 1.0)),
-                fov_x_deg=c.number("fov_x_deg"),
-                width=c.number("width", int, minimum=1),
-                height=c.number("height", int, minimum=1),
-            )
-        )
+    t = Table(
+        data,
+        file,
+        "scene",
+        ("geometry", "cameras", "lights", "environment", "integrator", "max_depth"),
+    )
+    geometry = _geometry(t._get("geometry", None, True), file)
+    cameras = tuple(_camera(item, file, i) for i, item in enumerate(t.tables("cameras")))
     if not cameras:
         raise CaptureError(f"{file}: [scene] needs at least one [[scene.cameras]]")
-    lights = []
-    for i, item in enumerate(t.list("lights")):
-        lt = _Table(
-            item,
-            file,
-            f"scene.lights[{i}]",
-            ("type", "center", "u_axis", "v_axis", "size", "emit_direction", "radiance"),
-        )
-        kind = lt.string("type", "rectangle")
-        if kind != "rectangle":
-            raise CaptureError(f"{file}: scene.lights[{i}].type = {kind!r}; known: rectangle")
-        lights.append(
-            RectLight(
-                center=lt.vec("center"),
-                u_axis=lt.vec("u_axis"),
-                v_axis=lt.vec("v_axis"),
-                size=lt.vec("size", 2),
-                emit_direction=lt.vec("emit_direction"),
-                radiance=lt.vec("radiance"),
-            )
-        )
-    scene = Scene(
+    lights = tuple(_light(item, file, i) for i, item in enumerate(t.tables("lights")))
+    environment = _environment(t._get("environment", (0.0, 0.0, 0.0), False), file)
+    if not lights and not isinstance(environment, EnvMap) and not any(environment):
+        raise CaptureError(f"{file}: the scene has no light: add [[scene.lights]] or environment")
+    return Scene(
         geometry=geometry,
-        cameras=tuple(cameras),
-        lights=tuple(lights),
-        environment=t.vec("environment", default=(0.0, 0.0, 0.0)),
+        cameras=cameras,
+        lights=lights,
+        environment=environment,
+        integrator=t.string("integrator", "prb", INTEGRATORS),
         max_depth=t.number("max_depth", int, default=8, minimum=1),
     )
-    return scene

@@ -5,18 +5,20 @@ from __future__ import annotations
 import mitsuba as mi
 import numpy as np
 
-from captures import Camera, RectLight, Scene
+from captures import Camera, Scene
+from captures.geometry import MeshData, cup_mesh
+from captures.scene import Cup, DirectionalLight, EnvMap, ObjFile, PointLight, RectLight, Sphere
+
+#: Traverse-key prefix of the object's material in a scene built by `scene_dict`.
+MATERIAL_PREFIX = "object.bsdf."
 
 
 def sensor_dict(camera: Camera, spp: int) -> dict:
-    """A perspective sensor with a box pixel filter (the peers' convention)."""
-    return {
-        "type": "perspective",
-        "fov": camera.fov_x_deg,
-        "fov_axis": "x",
-        "to_world": mi.ScalarTransform4f().look_at(
-            origin=camera.origin, target=camera.target, up=camera.up
-        ),
+    """A perspective (pinhole or thin-lens) or orthographic sensor, box pixel filter."""
+    to_world = mi.ScalarTransform4f().look_at(
+        origin=camera.origin, target=camera.target, up=camera.up
+    )
+    out: dict = {
         "film": {
             "type": "hdrfilm",
             "width": camera.width,
@@ -26,6 +28,24 @@ def sensor_dict(camera: Camera, spp: int) -> dict:
         },
         "sampler": {"type": "independent", "sample_count": spp},
     }
+    if camera.kind == "orthographic":
+        half = camera.ortho_width / 2  # Mitsuba's view spans [-1, 1] horizontally
+        return {
+            **out,
+            "type": "orthographic",
+            "to_world": to_world @ mi.ScalarTransform4f().scale([half, half, 1.0]),
+        }
+    out.update(
+        {"type": "perspective", "fov": camera.fov_x_deg, "fov_axis": "x", "to_world": to_world}
+    )
+    if camera.aperture_radius > 0:
+        focus = camera.focus_distance or float(
+            np.linalg.norm(np.subtract(camera.target, camera.origin))
+        )
+        out.update(
+            {"type": "thinlens", "aperture_radius": camera.aperture_radius, "focus_distance": focus}
+        )
+    return out
 
 
 def rect_light_dict(light: RectLight) -> dict:
@@ -47,41 +67,106 @@ def rect_light_dict(light: RectLight) -> dict:
     }
 
 
-def geometry_dict(scene: Scene, bsdf: dict) -> dict:
-    if scene.geometry == "sphere":
-        return {"type": "sphere", "bsdf": bsdf}
-    return {"type": "obj", "filename": str(scene.geometry), "bsdf": bsdf}
+def light_dict(light) -> dict:
+    if isinstance(light, RectLight):
+        return rect_light_dict(light)
+    if isinstance(light, PointLight):
+        return {
+            "type": "point",
+            "position": list(light.position),
+            "intensity": {"type": "rgb", "value": list(light.intensity)},
+        }
+    if isinstance(light, DirectionalLight):
+        return {
+            "type": "directional",
+            "direction": list(light.direction),
+            "irradiance": {"type": "rgb", "value": list(light.irradiance)},
+        }
+    raise TypeError(f"unknown light {light!r}")
 
 
-def scene_dict(scene: Scene, bsdf: dict, view: int = 0, spp: int = 64) -> dict:
-    """A Mitsuba scene dict of one view: the object with `bsdf` (its id is `bsdf["id"]`, if any),
-    the lights, the environment and a `prb` integrator."""
+def mesh(data: MeshData, name: str, bsdf: mi.BSDF, emitter: dict | None = None) -> mi.Mesh:
+    """A Mitsuba mesh from arrays, with normals and UVs."""
+    props = mi.Properties()
+    props["bsdf"] = bsdf
+    if emitter is not None:
+        props["emitter"] = mi.load_dict(emitter)
+    out = mi.Mesh(
+        name,
+        len(data.positions),
+        len(data.faces),
+        props=props,
+        has_vertex_normals=True,
+        has_vertex_texcoords=True,
+    )
+    params = mi.traverse(out)
+    params["vertex_positions"] = mi.Float(np.ravel(data.positions).astype(np.float32))
+    params["faces"] = mi.UInt32(np.ravel(data.faces).astype(np.uint32))
+    params["vertex_normals"] = mi.Float(np.ravel(data.normals).astype(np.float32))
+    params["vertex_texcoords"] = mi.Float(np.ravel(data.uvs).astype(np.float32))
+    params.update()
+    return out
+
+
+def geometry_dict(scene: Scene, bsdf: mi.BSDF, emitter: dict | None = None) -> dict | mi.Mesh:
+    """The object with a loaded `bsdf` (and an optional area `emitter`)."""
+    geometry = scene.geometry
+    if isinstance(geometry, Cup):
+        return mesh(cup_mesh(geometry.shape), "cup", bsdf, emitter)
+    if isinstance(geometry, Sphere):
+        out = {"type": "sphere", "center": list(geometry.center), "radius": geometry.radius}
+    elif isinstance(geometry, ObjFile):
+        out = {"type": "obj", "filename": str(geometry.path)}
+    else:
+        raise TypeError(f"unknown geometry {geometry!r}")
+    out["bsdf"] = bsdf
+    if emitter is not None:
+        out["emitter"] = emitter
+    return out
+
+
+def environment_dict(scene: Scene) -> dict | None:
+    env = scene.environment
+    if isinstance(env, EnvMap):
+        return {"type": "envmap", "filename": str(env.path), "scale": env.scale}
+    if any(env):
+        return {"type": "constant", "radiance": {"type": "rgb", "value": list(env)}}
+    return None
+
+
+def scene_dict(scene: Scene, bsdf: dict | mi.BSDF, view: int = 0, spp: int = 64) -> dict:
+    """A Mitsuba scene dict of one view; the material's traverse keys are `MATERIAL_PREFIX` + its
+    own keys (`material_keys`)."""
+    material = mi.load_dict(bsdf) if isinstance(bsdf, dict) else bsdf
     out = {
         "type": "scene",
-        "integrator": {"type": "prb", "max_depth": scene.max_depth},
+        "integrator": {"type": scene.integrator, "max_depth": scene.max_depth},
         "sensor": sensor_dict(scene.cameras[view], spp),
-        "object": geometry_dict(scene, bsdf),
+        "object": geometry_dict(scene, material),
     }
     for i, light in enumerate(scene.lights):
-        out[f"light_{i}"] = rect_light_dict(light)
-    if any(scene.environment):
-        out["environment"] = {
-            "type": "constant",
-            "radiance": {"type": "rgb", "value": list(scene.environment)},
-        }
+        out[f"light_{i}"] = light_dict(light)
+    environment = environment_dict(scene)
+    if environment is not None:
+        out["environment"] = environment
     return out
 
 
 def coverage_dict(scene: Scene, view: int = 0, spp: int = 64) -> dict:
     """A scene whose render is each pixel's object coverage in [0, 1] (the object emits 1, nothing
     else is lit), through the same camera and pixel filter as `scene_dict`."""
-    obj = geometry_dict(
-        scene, {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0, 0, 0]}}
-    )
-    obj["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}
+    black = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": [0, 0, 0]}})
+    emitter = {"type": "area", "radiance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}
     return {
         "type": "scene",
         "integrator": {"type": "path", "max_depth": 1},  # emitters seen directly, nothing else
         "sensor": sensor_dict(scene.cameras[view], spp),
-        "object": obj,
+        "object": geometry_dict(scene, black, emitter),
     }
+
+
+def material_keys(scene: mi.Scene) -> list[str]:
+    """The material's parameter keys in a loaded scene (`glaze.roughness`, `lime.mask.threshold`,
+    ... for a stack; the plugin's own keys for a single BSDF)."""
+    n = len(MATERIAL_PREFIX)
+    return [k[n:] for k in mi.traverse(scene).keys() if k.startswith(MATERIAL_PREFIX)]

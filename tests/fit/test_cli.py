@@ -78,7 +78,7 @@ def test_render_writes_exr_and_png(tmp_path):
         (("spp = 256", "spp = 0"), "render.spp = 0 must be a positive integer"),
         (
             ('geometry = "sphere"', 'geometry = "cup.obj"'),
-            "scene.geometry 'cup.obj' does not exist",
+            "scene.geometry.file = 'cup.obj' does not exist",
         ),
         (("[render]", "[rendr]"), "unknown table(s) rendr"),
     ],

@@ -1,0 +1,195 @@
+"""Geometry without a renderer: the procedural cup mesh (numpy) and OBJ checks.
+
+The cup is a body of revolution (outer wall, rounded rim, inner wall, base, with fillets, so its
+profile and normals are smooth) plus a handle swept along a half ellipse. UVs: the body's `u` runs
+around the axis (0 to 1, seam duplicated so textures and masks tile), `v` along the profile from the
+outer base centre (0) over the rim to the inner base centre (1); the handle has its own UV square.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import CaptureError
+
+
+@dataclass(frozen=True)
+class MeshData:
+    """A triangle mesh: positions (N, 3), faces (M, 3) int, normals (N, 3), uvs (N, 2)."""
+
+    positions: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray
+    uvs: np.ndarray
+
+    @staticmethod
+    def concatenate(*parts: MeshData) -> MeshData:
+        offsets = np.cumsum([0] + [len(p.positions) for p in parts[:-1]])
+        return MeshData(
+            np.concatenate([p.positions for p in parts]),
+            np.concatenate([p.faces + o for p, o in zip(parts, offsets, strict=True)]),
+            np.concatenate([p.normals for p in parts]),
+            np.concatenate([p.uvs for p in parts]),
+        )
+
+
+@dataclass(frozen=True)
+class CupShape:
+    """Dimensions of the procedural cup, in metres (a 300 ml mug by default)."""
+
+    height: float = 0.095
+    radius_top: float = 0.041
+    radius_bottom: float = 0.034
+    wall: float = 0.0045
+    base: float = 0.007
+    fillet: float = 0.004
+    handle: bool = True
+    segments: int = 128
+
+    def __post_init__(self):
+        if not 0 < self.wall < min(self.radius_top, self.radius_bottom) / 2:
+            raise ValueError(f"cup: wall = {self.wall} must be in (0, radius / 2)")
+        if not 0 < self.fillet < self.radius_bottom - self.wall:
+            raise ValueError(f"cup: fillet = {self.fillet} must be in (0, radius_bottom - wall)")
+        if not self.wall < self.base < self.height / 2:
+            raise ValueError(f"cup: base = {self.base} must be in (wall, height / 2)")
+        if self.segments < 8:
+            raise ValueError(f"cup: segments = {self.segments} must be >= 8")
+
+
+def _arc(center, radius, start, stop, n):
+    angles = np.linspace(start, stop, n)
+    return np.stack([center[0] + radius * np.cos(angles), center[1] + radius * np.sin(angles)], 1)
+
+
+def _line(a, b, n):
+    return np.linspace(a, b, n)
+
+
+def cup_profile(shape: CupShape) -> np.ndarray:
+    """(r, z) points of the cup's cross-section: a G1-continuous polyline from the outer base
+    centre, out, up the outer wall, over the rounded rim, down the inner wall, to the inner base
+    centre. Fillets join the base and the walls."""
+    s, f, t = shape, shape.fillet, shape.wall
+    wall = np.arctan2(s.height, s.radius_top - s.radius_bottom)  # direction of the walls
+    out = wall - np.pi / 2  # outward normal angle of the walls
+    n_out = np.array([np.cos(out), np.sin(out)])
+
+    def fillet_centre(point_on_wall, z):
+        """Centre at height z, distance f inside the wall line through `point_on_wall`."""
+        return np.array(
+            [point_on_wall[0] + ((z - point_on_wall[1]) * np.cos(wall) - f) / np.sin(wall), z]
+        )
+
+    top_out = np.array([s.radius_top, s.height])
+    top_in = top_out - t * n_out
+    foot = _arc(fillet_centre(top_out, f), f, -np.pi / 2, out, 8)
+    rim = _arc(top_out - t / 2 * n_out, t / 2, out, out + np.pi, 16)
+    inner_foot = _arc(fillet_centre(top_in, s.base + f), f, out, -np.pi / 2, 8)
+    return np.concatenate(
+        [
+            _line([0.0, 0.0], foot[0], 12)[:-1],
+            foot,
+            _line(foot[-1], top_out, 40)[1:-1],
+            rim,
+            _line(top_in, inner_foot[0], 40)[1:-1],
+            inner_foot,
+            _line(inner_foot[-1], [0.0, s.base], 12)[1:],
+        ]
+    )
+
+
+def _revolve(profile: np.ndarray, segments: int) -> MeshData:
+    """Revolve an (r, z) polyline around z; normals from the profile's tangents."""
+    tangent = np.gradient(profile, axis=0)
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    normal2d = np.stack([tangent[:, 1], -tangent[:, 0]], 1)  # tangent turned clockwise: outward
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(profile, axis=0), axis=1))])
+    phi = np.linspace(0.0, 2 * np.pi, segments + 1)
+    rows, cols = len(profile), segments + 1
+    cos, sin, ones = np.cos(phi)[None, :], np.sin(phi)[None, :], np.ones((1, cols))
+    r, z = profile[:, :1], profile[:, 1:]
+    nr, nz = normal2d[:, :1], normal2d[:, 1:]
+    positions = np.stack([r * cos, r * sin, z * ones], -1).reshape(-1, 3)
+    normals = np.stack([nr * cos, nr * sin, nz * ones], -1).reshape(-1, 3)
+    u, v = np.meshgrid(phi / (2 * np.pi), arc / arc[-1])
+    uvs = np.stack([u, v], -1).reshape(-1, 2)
+    idx = np.arange(rows * cols).reshape(rows, cols)
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+    faces = np.concatenate(
+        [np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)]
+    )
+    # Drop the zero-area triangles at the axis (the rows at r = 0)
+    e1 = positions[faces[:, 1]] - positions[faces[:, 0]]
+    e2 = positions[faces[:, 2]] - positions[faces[:, 0]]
+    faces = faces[np.linalg.norm(np.cross(e1, e2), axis=1) > 1e-14]
+    return MeshData(positions, faces.astype(np.uint32), normals, uvs)
+
+
+def _handle(shape: CupShape, sweep: int = 48, around: int = 20) -> MeshData:
+    """A tube along a half ellipse on the +x side, its ends buried in the wall."""
+    s = shape
+    z_top, z_bottom = 0.78 * s.height, 0.28 * s.height
+    zc, az = (z_top + z_bottom) / 2, (z_top - z_bottom) / 2
+    wall_r = s.radius_bottom + (s.radius_top - s.radius_bottom) * zc / s.height
+    xc, ax, tube = wall_r - 0.004, 0.034, 0.0055
+    theta = np.linspace(np.pi / 2 + 0.15, -np.pi / 2 - 0.15, sweep)
+    centre = np.stack([xc + ax * np.cos(theta), np.zeros_like(theta), zc + az * np.sin(theta)], 1)
+    d = np.stack([-ax * np.sin(theta), np.zeros_like(theta), az * np.cos(theta)], 1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    binormal = np.array([0.0, 1.0, 0.0])
+    normal = np.cross(binormal, d)
+    psi = np.linspace(0, 2 * np.pi, around + 1)
+    ring = np.cos(psi)[None, :, None] * normal[:, None] + np.sin(psi)[None, :, None] * binormal
+    # a slightly flattened tube (wider across than deep), like a real handle
+    positions = centre[:, None] + tube * ring * np.array([1.0, 1.5, 1.0])
+    normals = ring * np.array([1.5, 1.0, 1.5])
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    u, v = np.meshgrid(np.linspace(0, 1, sweep), psi / (2 * np.pi), indexing="ij")
+    idx = np.arange(sweep * (around + 1)).reshape(sweep, around + 1)
+    a, b, c, e = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+    faces = np.concatenate(
+        [np.stack([a, c, e], -1).reshape(-1, 3), np.stack([a, e, b], -1).reshape(-1, 3)]
+    )
+    return MeshData(
+        positions.reshape(-1, 3),
+        faces.astype(np.uint32),
+        normals.reshape(-1, 3),
+        np.stack([u, v], -1).reshape(-1, 2),
+    )
+
+
+def cup_mesh(shape: CupShape | None = None) -> MeshData:
+    """The procedural cup: a body of revolution with wall thickness, and a handle."""
+    shape = shape or CupShape()
+    body = _revolve(cup_profile(shape), shape.segments)
+    return MeshData.concatenate(body, _handle(shape)) if shape.handle else body
+
+
+def check_obj_has_uvs(path: str | Path) -> None:
+    """Raise `CaptureError` unless every face of the OBJ at `path` has texture coordinates."""
+    path = Path(path)
+    try:
+        text = path.read_text(errors="replace")
+    except FileNotFoundError:
+        raise CaptureError(f"{path}: no such OBJ file") from None
+    has_vt, faces, faces_with_vt = False, 0, 0
+    for line in text.splitlines():
+        if line.startswith("vt "):
+            has_vt = True
+        elif line.startswith("f "):
+            faces += 1
+            corners = line.split()[1:]
+            if corners and all("/" in c and c.split("/")[1] != "" for c in corners):
+                faces_with_vt += 1
+    if faces == 0:
+        raise CaptureError(f"{path}: the OBJ has no faces")
+    if not has_vt or faces_with_vt < faces:
+        raise CaptureError(
+            f"{path}: the OBJ has no texture coordinates on {faces - faces_with_vt} of {faces} "
+            "faces; layer masks and textures need UVs: unwrap it (e.g. Blender: UV > Smart UV "
+            "Project) and export with UVs"
+        )
