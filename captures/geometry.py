@@ -3,7 +3,8 @@
 The cup is a body of revolution (outer wall, rounded rim, inner wall, base, with fillets, so its
 profile and normals are smooth) plus a handle swept along a half ellipse. UVs: the body's `u` runs
 around the axis (0 to 1, seam duplicated so textures and masks tile), `v` along the profile from the
-outer base centre (0) over the rim to the inner base centre (1); the handle has its own UV square.
+outer base centre (0) over the rim to the inner base centre (1); the handle's UVs lie in the outer
+wall's band of `v`.
 """
 
 from __future__ import annotations
@@ -148,7 +149,9 @@ def _handle(shape: CupShape, sweep: int = 48, around: int = 20) -> MeshData:
     positions = centre[:, None] + tube * ring * np.array([1.0, 1.5, 1.0])
     normals = ring * np.array([1.5, 1.0, 1.5])
     normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    u, v = np.meshgrid(np.linspace(0, 1, sweep), psi / (2 * np.pi), indexing="ij")
+    # UVs: u along the handle, v around it inside the band of the body's outer wall (0.25-0.45),
+    # so painted masks that vary with v treat the handle like the middle of the outer wall
+    u, v = np.meshgrid(np.linspace(0, 1, sweep), 0.25 + 0.2 * psi / (2 * np.pi), indexing="ij")
     idx = np.arange(sweep * (around + 1)).reshape(sweep, around + 1)
     a, b, c, e = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
     faces = np.concatenate(

@@ -60,6 +60,9 @@ def write_image(path: str | Path, linear: np.ndarray) -> Path:
     spec = oiio.ImageSpec(data.shape[1], data.shape[0], data.shape[2], fmt)
     fd, tmp = tempfile.mkstemp(suffix=suffix, dir=path.parent)
     os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 is for secrets, not images
     try:
         out = oiio.ImageOutput.create(tmp)
         if out is None or not out.open(tmp, spec):
