@@ -48,7 +48,7 @@ def main() -> None:
         "stain": np.where(
             inside,
             np.maximum(band(z, 0.70 * h, 0.75 * h, 0.004), 0.45 * (1 - smoothstep(z, 0.2 * h, 0.7 * h))),
-            0.3 * band(z, 0.6 * h, 0.9 * h, 0.01),
+            0.8 * band(z, 0.62 * h, 0.86 * h, 0.01),
         ),
     }
     OUT.mkdir(parents=True, exist_ok=True)
