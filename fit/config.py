@@ -6,7 +6,7 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
-from captures import CaptureError, Scene, parse_scene
+from captures import Scene, parse_scene
 
 from .material import ConfigError, material_dict
 
@@ -40,11 +40,7 @@ def load_render_config(path: str | Path) -> RenderConfig:
         raise ConfigError(f"{path}: unknown key(s) {', '.join(render)} in [render]; known: spp")
     if not isinstance(spp, int) or spp < 1:
         raise ConfigError(f"{path}: render.spp = {spp!r} must be a positive integer")
-    try:
-        return RenderConfig(
-            parse_scene(doc["scene"], path), material_dict(doc["material"], path), spp
-        )
-    except ValueError as err:  # bounds violations raised by the declarations
-        if isinstance(err, CaptureError):
-            raise
-        raise ConfigError(str(err)) from None
+    material = material_dict(doc["material"], path)
+    if material is None:
+        raise ConfigError(f"{path}: every layer of [material] is disabled: nothing to render")
+    return RenderConfig(parse_scene(doc["scene"], path), material, spp)

@@ -76,6 +76,13 @@ def _texture_file(value: str, file: Path, where: str, raw: bool) -> dict:
     return {"type": "bitmap", "filename": str(path), "raw": raw}
 
 
+def _check(spec, value, file, where):
+    try:
+        spec.check(value, f"{file}: {where.rsplit('.', 1)[0]}")
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+
+
 def _value(spec, value, file, where):
     """A declared parameter's value as Mitsuba wants it (checked against its bounds)."""
     if spec.kind == "rgb":
@@ -85,11 +92,11 @@ def _value(spec, value, file, where):
             value = [value] * 3
         if not isinstance(value, list) or len(value) != 3:
             raise ConfigError(f"{file}: {where} must be 3 numbers (linear RGB) or a texture file")
-        spec.check(value, f"{file}: {where.rsplit('.', 1)[0]}")
+        _check(spec, value, file, where)
         return {"type": "rgb", "value": [float(x) for x in value]}
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise ConfigError(f"{file}: {where} must be a number, got {value!r}")
-    spec.check(value, f"{file}: {where.rsplit('.', 1)[0]}")
+    _check(spec, value, file, where)
     return float(value)
 
 

@@ -9,7 +9,7 @@ walked from the top.
 One layer is chosen per interaction with probability `p_k = detach(w_k)`, and its BSDF is
 evaluated alone (`dr.switch`: lanes run only their layer's code) with weight `w_k / detach(p_k)`,
 which is 1 but carries the masks' gradients. The choice comes from a hash of the interaction (its
-position and UV, salted per stack), so `eval`, `pdf` and `sample` at one interaction agree on the
+position and UV, salted by the stack's layer names), so `eval`, `pdf` and `sample` at one interaction agree on the
 layer; over the hits of a pixel the choice is uniform, so the expected BSDF is `sum_k w_k f_k`
 (equal to `blendbsdf` for a constant two-layer mask).
 
@@ -20,7 +20,7 @@ plane of the smooth shading normal (not the geometric one), so a coarse mesh doe
 
 from __future__ import annotations
 
-import itertools
+import zlib
 
 import drjit as dr
 import mitsuba as mi
@@ -30,7 +30,6 @@ from .params import LAYERED_PARAMS
 
 # UV step of the finite differences that give the height field's slope.
 _BUMP_EPS = 1e-4
-_salts = itertools.count(1)
 
 
 def _uniform(si, salt: int):
@@ -70,7 +69,9 @@ class Layered(mi.BSDF):
                 raise ValueError(f"layered plugin: layer {name!r} needs a mask texture {mask!r}")
             self.masks.append(props.get_texture(mask) if k > 0 else None)
         self.bump = read_float(props, self.PARAMS["bump"], "layered") if "bump" in props else None
-        self.salt = next(_salts)
+        # per-stack salt (from the layer names, so it does not depend on loading order): nested
+        # stacks choose independently
+        self.salt = zlib.crc32(",".join(self.names).encode()) | 1
         self.m_components = [c for layer in self.layers for c in layer.m_components]
         self.m_flags = 0
         for layer in self.layers:

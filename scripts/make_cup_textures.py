@@ -42,12 +42,16 @@ def main() -> None:
         # glaze everywhere but the unglazed foot ring and outer base
         "glaze": np.where(inside, 1.0, smoothstep(z, 0.006, 0.010)),
         # lime scale on the rim, a little way down both walls, and on the inner base
-        "lime": np.maximum(smoothstep(z, 0.86 * h, 0.97 * h),
-                           0.7 * inside * (1 - smoothstep(z, shape.base + 0.001, shape.base + 0.006))),
+        "lime": np.maximum(
+            smoothstep(z, 0.86 * h, 0.97 * h),
+            0.7 * inside * (1 - smoothstep(z, shape.base + 0.001, shape.base + 0.006)),
+        ),
         # coffee: a ring at the fill line, a wash below it, the inner base; drips outside
         "stain": np.where(
             inside,
-            np.maximum(band(z, 0.70 * h, 0.75 * h, 0.004), 0.45 * (1 - smoothstep(z, 0.2 * h, 0.7 * h))),
+            np.maximum(
+                band(z, 0.70 * h, 0.75 * h, 0.004), 0.45 * (1 - smoothstep(z, 0.2 * h, 0.7 * h))
+            ),
             0.8 * band(z, 0.62 * h, 0.86 * h, 0.01),
         ),
     }

@@ -332,12 +332,12 @@ def test_bump_bends_the_normal_and_differentiates():
 
     ad = ad_derivative(bsdf, "bump", 0.004, fn)
     fd, rounding = fd_derivative(bsdf, "bump", 0.004, fn, h=1e-4)
-    # Bending moves lobes across the kinks of Cook-Torrance's min() and Oren-Nayar's max(): FD
-    # is meaningless in the few lanes where it changes with the step; compare everywhere else.
-    fd2, _ = fd_derivative(bsdf, "bump", 0.004, fn, h=2e-4)
-    smooth = np.all(np.abs(fd2 - fd) <= 0.05 * np.abs(fd) + rounding, axis=1)
-    assert smooth.mean() > 0.99
-    assert_derivative(ad[smooth], fd[smooth], rounding[smooth], 5e-2, "bump")
+    # Bending moves lobes across the kinks of Cook-Torrance's min() and Oren-Nayar's max(), where
+    # a finite difference means nothing: demand agreement in almost every lane, and in the sum
+    # over lanes (to which the kinks contribute little).
+    close = np.abs(ad - fd) <= 0.05 * np.abs(fd) + rounding + 1e-5 * np.abs(fd).max()
+    assert close.all(axis=1).mean() > 0.99
+    assert ad.sum(axis=0) == pytest.approx(fd.sum(axis=0), rel=0.02)
     assert np.abs(ad).max() > 0
 
 

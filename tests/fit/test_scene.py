@@ -1,0 +1,197 @@
+"""Scene assembly: only what a config requires is built; every camera and light kind renders."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from captures import parse_scene
+from fit.config import load_render_config
+from fit.material import ConfigError, material_dict
+from fit.render import render
+from fit.scene import coverage_dict, material_keys, scene_dict
+
+ROOT = Path(__file__).resolve().parents[2]
+CUP = ROOT / "configs" / "cup.toml"
+
+
+def cup_material(edit=None) -> dict:
+    doc = tomllib.loads(CUP.read_text())
+    if edit:
+        edit(doc["material"])
+    return material_dict(doc["material"], CUP)
+
+
+def built_keys(material: dict) -> set[str]:
+    cfg = load_render_config(CUP)
+    return set(material_keys(mi.load_dict(scene_dict(cfg.scene, material, 0, 1))))
+
+
+def layer(doc, name):
+    return next(x for x in doc["layers"] if x["name"] == name)
+
+
+def test_cup_builds_all_four_layers():
+    keys = built_keys(cup_material())
+    for key in (
+        "bump",
+        "clay.sigma",
+        "glaze.roughness",
+        "glaze.pigment_noise",
+        "glaze.normal_noise",
+        "glaze.mask.threshold",
+        "lime.mask.softness",
+        "stain.reflectance.value",
+        "stain.mask.texture.data",
+    ):
+        assert key in keys, key
+
+
+def test_disabled_layer_leaves_nothing_behind():
+    def disable_stain(m):
+        layer(m, "stain")["enabled"] = False
+
+    keys = built_keys(cup_material(disable_stain))
+    assert not [k for k in keys if k.startswith("stain.")]
+    assert "lime.mask.threshold" in keys
+    material = cup_material(disable_stain)
+    assert material["layers"] == "clay,glaze,lime" and "stain_mask" not in material
+
+
+def test_zero_options_are_not_built():
+    def plain(m):
+        m["bump"] = 0.0
+        layer(m, "glaze")["pigment_noise"] = 0.0
+        layer(m, "glaze")["normal_noise"] = 0.0
+
+    keys = built_keys(cup_material(plain))
+    assert "bump" not in keys
+    assert not {"glaze.pigment_noise", "glaze.normal_noise"} & keys
+    assert "pigment_noise_scale" not in cup_material(plain)["glaze"]
+
+
+def test_a_stack_of_one_is_its_layer():
+    def only_clay(m):
+        for name in ("glaze", "lime", "stain"):
+            layer(m, name)["enabled"] = False
+
+    material = cup_material(only_clay)
+    assert material["type"] == "oren_nayar"
+    assert built_keys(material) == {"reflectance.value", "sigma"}
+
+
+def test_bottom_mask_is_dropped_with_the_bottom_layer():
+    """Disabling the bottom layer makes the next one the bottom: its mask is not built."""
+
+    def no_clay(m):
+        layer(m, "clay")["enabled"] = False
+
+    material = cup_material(no_clay)
+    assert material["layers"].startswith("glaze,") and "glaze_mask" not in material
+    assert not [k for k in built_keys(material) if k.startswith("glaze.mask")]
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (
+            lambda m: layer(m, "lime").pop("mask"),
+            "layer 'lime' needs a [material.layers.mask] table",
+        ),
+        (lambda m: layer(m, "lime")["mask"].update(scale=2.5), "material.lime.mask.scale = 2.5"),
+        (lambda m: layer(m, "lime")["mask"].update(threshold=2.0), "threshold = 2.0 is outside"),
+        (
+            lambda m: layer(m, "lime")["mask"].update(texture="none.png"),
+            "'none.png' does not exist",
+        ),
+        (lambda m: layer(m, "glaze").update(roughnes=0.1), "unknown key material.glaze.roughnes"),
+        (lambda m: layer(m, "glaze").update(type="plastic"), "material.glaze.type = 'plastic'"),
+        (lambda m: layer(m, "stain").update(name="lime"), "'lime' is used twice"),
+        (lambda m: m.update(bump=1.0), "bump = 1.0 is outside"),
+        (lambda m: m.update(bumps=1.0), "unknown key(s) bumps in [material]"),
+    ],
+)
+def test_material_errors_name_the_key(edit, message):
+    with pytest.raises(ConfigError) as err:
+        cup_material(edit)
+    assert message in str(err.value) and "cup.toml" in str(err.value)
+
+
+def small(scene_table: dict, tmp_path) -> object:
+    return parse_scene(scene_table, tmp_path / "s.toml")
+
+
+CAMERA = {"origin": [0.0, -0.4, 0.12], "target": [0, 0, 0.05], "width": 24, "height": 24}
+
+
+@pytest.mark.parametrize(
+    "camera",
+    [
+        {**CAMERA, "fov_x_deg": 30},
+        {**CAMERA, "fov_x_deg": 30, "aperture_radius": 0.003},
+        {**CAMERA, "type": "orthographic", "ortho_width": 0.16},
+    ],
+)
+@pytest.mark.parametrize(
+    "light",
+    [
+        {
+            "type": "rectangle",
+            "center": [0.2, -0.3, 0.3],
+            "target": [0, 0, 0],
+            "size": [0.1, 0.1],
+            "power": 2.0,
+        },
+        {"type": "point", "position": [0.2, -0.3, 0.3], "power": 2.0, "temperature": 4000},
+        {"type": "directional", "direction": [-1, 1, -1], "irradiance": 2.0},
+    ],
+)
+def test_every_camera_and_light_renders_the_cup(tmp_path, camera, light):
+    scene = small({"geometry": "cup", "cameras": [camera], "lights": [light]}, tmp_path)
+    image = render(mi.load_dict(scene_dict(scene, {"type": "oren_nayar"}, 0, 8)), 8)
+    cover = render(mi.load_dict(coverage_dict(scene, 0, 8)), 8)[..., 0]
+    assert np.all(np.isfinite(image))
+    assert 0.1 < (cover > 0.5).mean() < 0.9  # the cup fills part of the frame
+    assert image[cover > 0.99].mean() > 0.01  # and is lit
+
+
+def test_point_light_power_is_radiometric(tmp_path):
+    """A point light of power P above a Lambertian sphere: radiance at the pole is rho P/(4 pi d^2)
+    / pi (within Monte Carlo noise)."""
+    d, power, rho = 3.0, 100.0, 0.5
+    scene = small(
+        {
+            "geometry": "sphere",
+            "cameras": [
+                {
+                    "type": "orthographic",
+                    "origin": [0, 0, 5],
+                    "target": [0, 0, 0],
+                    "up": [0, 1, 0],
+                    "ortho_width": 0.05,
+                    "width": 4,
+                    "height": 4,
+                }
+            ],
+            "lights": [{"type": "point", "position": [0, 0, 1 + d], "power": power}],
+        },
+        tmp_path,
+    )
+    image = render(
+        mi.load_dict(
+            scene_dict(
+                scene,
+                {"type": "oren_nayar", "reflectance": {"type": "rgb", "value": [rho] * 3}},
+                0,
+                16,
+            )
+        ),
+        16,
+    )
+    expected = rho / math.pi * power / (4 * math.pi * d**2)
+    assert image.mean() == pytest.approx(expected, rel=0.02)
