@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import platform
 import statistics
 import time
@@ -14,7 +15,8 @@ import numpy as np
 from .config import load_render_config
 from .scene import scene_dict
 
-DEFAULT_SCENE = Path(__file__).resolve().parent.parent / "configs" / "glazed-sphere.toml"
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+DEFAULT_SCENE = CONFIGS / "glazed-sphere.toml"
 
 
 @dataclass
@@ -118,6 +120,54 @@ def bsdf_speed_table(spp: int = 64, repeats: int = 7, progress=None) -> Table:
         rows=rows,
         notes=[
             f"median of {repeats} interleaved renders after one untimed warm-up each",
+            machine(),
+        ],
+    )
+
+
+def _interleaved(scenes: dict, spp: int, repeats: int, progress, label: str) -> dict[str, list]:
+    """Times of `repeats` renders of each scene, interleaved, after an untimed warm-up each."""
+    task = progress.add_task(label, total=repeats * len(scenes)) if progress else None
+    times: dict[str, list[float]] = {name: [] for name in scenes}
+    for scene in scenes.values():
+        _timed(scene, spp, 0)
+    for i in range(repeats):
+        for name, scene in scenes.items():
+            times[name].append(_timed(scene, spp, i + 1))
+            if progress:
+                progress.advance(task)
+    return times
+
+
+def cup_speed_table(spp: int = 64, repeats: int = 5, size: int = 256, progress=None) -> Table:
+    """Render time of the paper's cup (configs/cup.toml) at `size`^2, and of each of its layers
+    alone as the whole material: the stack's cost relative to its most expensive layer."""
+    cfg = load_render_config(CONFIGS / "cup.toml")
+    camera = dataclasses.replace(cfg.scene.cameras[0], width=size, height=size)
+    scene = dataclasses.replace(cfg.scene, cameras=(camera,))
+    stack = cfg.material
+    materials = {"cup: 4-layer stack": stack}
+    materials |= {f"{name} alone": stack[name] for name in stack["layers"].split(",")}
+    scenes = {name: mi.load_dict(scene_dict(scene, m, 0, spp)) for name, m in materials.items()}
+    times = _interleaved(scenes, spp, repeats, progress, "bench: cup layers")
+    median = {name: statistics.median(t) for name, t in times.items()}
+    slowest = max((n for n in median if n.endswith("alone")), key=median.get)
+    rows = [
+        [
+            name,
+            f"{median[name] * 1e3:.0f}",
+            f"{min(times[name]) * 1e3:.0f}",
+            f"{median[name] / median[slowest]:.2f}",
+        ]
+        for name in materials
+    ]
+    return Table(
+        title=f"Cup render time: {size}x{size}, {spp} spp, prb, max depth {scene.max_depth}",
+        columns=["material", "median ms", "min ms", f"time / {slowest}"],
+        rows=rows,
+        notes=[
+            f"median of {repeats} interleaved renders after one untimed warm-up each",
+            "a layer alone: its BSDF as the whole material (no masks, no bump)",
             machine(),
         ],
     )

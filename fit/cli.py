@@ -98,21 +98,27 @@ def render(
 @app.command()
 def bench(
     spp: Annotated[int, typer.Option(help="Samples per pixel of each timed render.")] = 64,
-    repeats: Annotated[
-        int, typer.Option(help="Timed renders per BSDF (the median is reported).")
-    ] = 7,
-    out: Annotated[Path | None, typer.Option(help="Also write the table (Markdown) here.")] = None,
+    repeats: Annotated[int, typer.Option(help="Timed renders per case (median reported).")] = 7,
+    only: Annotated[str | None, typer.Option(help="Run one table: bsdf or cup.")] = None,
+    out: Annotated[Path | None, typer.Option(help="Also write the tables (Markdown) here.")] = None,
     variant: VariantOption = None,
 ) -> None:
-    """Speed table: our BSDFs vs Mitsuba's built-ins (`principled`, `diffuse`), same scene."""
+    """Speed tables: our BSDFs vs Mitsuba's built-ins, and the cup's stack vs its layers."""
+    if only not in (None, "bsdf", "cup"):
+        raise _fail(ValueError(f"--only {only!r}: choose bsdf or cup"), 2)
     _start(variant)
-    from .bench import bsdf_speed_table
+    from .bench import bsdf_speed_table, cup_speed_table
 
+    tables = []
     with _progress() as bar:
-        table = bsdf_speed_table(spp=spp, repeats=repeats, progress=bar)
-    console.print(table.rich())
+        if only in (None, "bsdf"):
+            tables.append(bsdf_speed_table(spp=spp, repeats=repeats, progress=bar))
+        if only in (None, "cup"):
+            tables.append(cup_speed_table(spp=spp, repeats=repeats, progress=bar))
+    for table in tables:
+        console.print(table.rich())
     if out is not None:
-        out.write_text(table.markdown())
+        out.write_text("\n".join(t.markdown() for t in tables))
         console.print(f"wrote {out}")
 
 

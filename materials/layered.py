@@ -9,9 +9,9 @@ walked from the top.
 One layer is chosen per interaction with probability `p_k = detach(w_k)`, and its BSDF is
 evaluated alone (`dr.switch`: lanes run only their layer's code) with weight `w_k / detach(p_k)`,
 which is 1 but carries the masks' gradients. The choice comes from a hash of the interaction (its
-position and UV, salted by the stack's layer names), so `eval`, `pdf` and `sample` at one interaction agree on the
-layer; over the hits of a pixel the choice is uniform, so the expected BSDF is `sum_k w_k f_k`
-(equal to `blendbsdf` for a constant two-layer mask).
+position and UV, salted by the stack's layer names), so `eval`, `pdf` and `sample` at one
+interaction agree on the layer; over the hits of a pixel the choice is uniform, so the expected
+BSDF is `sum_k w_k f_k` (equal to `blendbsdf` for a constant two-layer mask).
 
 With `bump > 0` the masks form a height field `H = bump * sum_{k > 0} m_k` (metres) that bends the
 shading normal, giving each layer visible thickness. The bumped normal is built in the tangent
@@ -86,16 +86,21 @@ class Layered(mi.BSDF):
 
     def shares(self, si, active=True):
         """`[w_0, ..., w_top]`: each layer's share at `si` (they sum to 1)."""
-        masks = [mi.Float(1.0), *self._mask_values(si, active)]
+        return self._shares(self._mask_values(si, active))
+
+    @staticmethod
+    def _shares(mask_values):
+        masks = [mi.Float(1.0), *mask_values]
         shares, remaining = [None] * len(masks), mi.Float(1.0)
         for k in reversed(range(len(masks))):
             shares[k] = masks[k] * remaining
             remaining = remaining * (1.0 - masks[k])
         return shares
 
-    def _choose(self, si, active):
-        """(layer index, weight `w_k / detach(p_k)`) for the interaction."""
-        shares = self.shares(si, active)
+    def _prepare(self, si, active):
+        """(layer index, weight `w_k / detach(p_k)`, interaction in the bumped frame)."""
+        mask_values = self._mask_values(si, active)
+        shares = self._shares(mask_values)
         u = _uniform(si, self.salt)
         index, weight, cumulative = mi.UInt32(0), mi.Float(0.0), mi.Float(0.0)
         for k, w in enumerate(shares[:-1]):
@@ -104,23 +109,20 @@ class Layered(mi.BSDF):
         for k, w in enumerate(shares):
             p = dr.detach(w)
             weight = dr.select(index == k, dr.select(p > 0, w / p, 0.0), weight)
-        return index, weight
+        return index, weight, self._bumped(si, mask_values, active)
 
     # Bump mapping ---------------------------------------------------------------------------------
 
-    def _height(self, si, active):
-        return self.bump * sum(self._mask_values(si, active))
-
-    def _bumped(self, si, active):
-        """A copy of `si` whose shading frame is bent by the height field."""
-        if self.bump is None or len(self.masks) < 2:
+    def _bumped(self, si, mask_values, active):
+        """A copy of `si` whose shading frame is bent by the height field (or `si` itself)."""
+        if self.bump is None or not mask_values:
             return si
-        h0 = self._height(si, active)
+        h0 = self.bump * sum(mask_values)
         shifted = mi.SurfaceInteraction3f(si)
         shifted.uv = si.uv + mi.Vector2f(_BUMP_EPS, 0.0)
-        dh_du = (self._height(shifted, active) - h0) / _BUMP_EPS
+        dh_du = (self.bump * sum(self._mask_values(shifted, active)) - h0) / _BUMP_EPS
         shifted.uv = si.uv + mi.Vector2f(0.0, _BUMP_EPS)
-        dh_dv = (self._height(shifted, active) - h0) / _BUMP_EPS
+        dh_dv = (self.bump * sum(self._mask_values(shifted, active)) - h0) / _BUMP_EPS
 
         n = si.sh_frame.n
         dp_du = si.dp_du + n * (dh_du - dr.dot(n, si.dp_du))
@@ -138,8 +140,7 @@ class Layered(mi.BSDF):
     # BSDF interface -------------------------------------------------------------------------------
 
     def sample(self, ctx, si, sample1, sample2, active=True):
-        index, weight = self._choose(si, active)
-        bumped = self._bumped(si, active)
+        index, weight, bumped = self._prepare(si, active)
         bs, value = dr.switch(
             index, [layer.sample for layer in self.layers], ctx, bumped, sample1, sample2, active
         )
@@ -152,32 +153,32 @@ class Layered(mi.BSDF):
         return bs, value * weight
 
     def eval(self, ctx, si, wo, active=True):
-        index, weight = self._choose(si, active)
-        bumped, wo_b, active = self._to_bumped(si, wo, active)
+        index, weight, bumped = self._prepare(si, active)
+        wo_b, active = self._to_bumped(si, bumped, wo, active)
         value = dr.switch(index, [layer.eval for layer in self.layers], ctx, bumped, wo_b, active)
         return dr.select(active, value * weight, 0.0)
 
     def pdf(self, ctx, si, wo, active=True):
-        index, _ = self._choose(si, active)
-        bumped, wo_b, active = self._to_bumped(si, wo, active)
+        index, _, bumped = self._prepare(si, active)
+        wo_b, active = self._to_bumped(si, bumped, wo, active)
         pdf = dr.switch(index, [layer.pdf for layer in self.layers], ctx, bumped, wo_b, active)
         return dr.select(active, pdf, 0.0)
 
     def eval_pdf(self, ctx, si, wo, active=True):
-        index, weight = self._choose(si, active)
-        bumped, wo_b, active = self._to_bumped(si, wo, active)
+        index, weight, bumped = self._prepare(si, active)
+        wo_b, active = self._to_bumped(si, bumped, wo, active)
         value, pdf = dr.switch(
             index, [layer.eval_pdf for layer in self.layers], ctx, bumped, wo_b, active
         )
         return dr.select(active, value * weight, 0.0), dr.select(active, pdf, 0.0)
 
-    def _to_bumped(self, si, wo, active):
-        bumped = self._bumped(si, active)
+    @staticmethod
+    def _to_bumped(si, bumped, wo, active):
+        """`wo` in the bumped frame; inactive where it crosses a horizon between the frames."""
         if bumped is si:
-            return si, wo, active
+            return wo, active
         wo_b = bumped.to_local(si.to_world(wo))
-        active = active & (mi.Frame3f.cos_theta(wo) * mi.Frame3f.cos_theta(wo_b) > 0)
-        return bumped, wo_b, active
+        return wo_b, active & (mi.Frame3f.cos_theta(wo) * mi.Frame3f.cos_theta(wo_b) > 0)
 
     def traverse(self, callback):
         if self.bump is not None:

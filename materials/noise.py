@@ -9,11 +9,6 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-# Eight unit gradient directions (Perlin's improved noise, 2D).
-_R = 0.70710678
-_GX = (1.0, _R, 0.0, -_R, -1.0, -_R, 0.0, _R)
-_GY = (0.0, _R, 1.0, _R, 0.0, -_R, -1.0, -_R)
-
 
 def _hash(ix, iy, seed: int):
     """32-bit integer hash of lattice coordinates and a seed (a 'lowbias32'-style mixer)."""
@@ -27,11 +22,10 @@ def _hash(ix, iy, seed: int):
 
 
 def _corner(ix, iy, dx, dy, seed: int):
-    """Dot product of the corner's pseudo-random gradient with the offset (dx, dy)."""
-    k = _hash(ix, iy, seed) & 7
-    gx = dr.gather(mi.Float, mi.Float(_GX), k)
-    gy = dr.gather(mi.Float, mi.Float(_GY), k)
-    return gx * dx + gy * dy
+    """Dot product of the corner's pseudo-random gradient, one of (+-1, +-1), with (dx, dy):
+    sign flips chosen by two hash bits (no table lookups)."""
+    h = _hash(ix, iy, seed)
+    return dr.select((h & 1) == 0, dx, -dx) + dr.select((h & 2) == 0, dy, -dy)
 
 
 def _wrap(i, period: int):
@@ -52,7 +46,7 @@ def perlin(p, period: int, seed: int = 0):
     n11 = _corner(ix1, iy1, f.x - 1.0, f.y - 1.0, seed)
     nx0 = dr.lerp(n00, n10, u.x)
     nx1 = dr.lerp(n01, n11, u.x)
-    return dr.lerp(nx0, nx1, u.y) * 1.41421356
+    return dr.lerp(nx0, nx1, u.y)
 
 
 def fbm(uv, scale: int, octaves: int, seed: int = 0):

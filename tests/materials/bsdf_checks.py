@@ -113,15 +113,21 @@ def fd_derivative(bsdf, key: str, value, fn, h: float, channel: int | None = Non
     return (4 * fine - coarse) / 3, rounding
 
 
-def assert_derivative(ad, fd, rounding, rtol: float, what: str) -> None:
+def assert_derivative(ad, fd, rounding, rtol: float, what: str, min_fraction: float = 1.0) -> None:
     """AD equals FD within `rtol` plus FD's rounding error, plus 1e-5 of the largest derivative
-    (FD's truncation error grows in a lobe's far tail, where the values are ~1e-8 of the peak).
-    So where the value measurably depends on the parameter, AD cannot be silently zero."""
+    (FD's truncation error grows in a lobe's far tail, where the values are ~1e-8 of the peak),
+    in at least `min_fraction` of the rows (directions). So where the value measurably depends on
+    the parameter, AD cannot be silently zero.
+
+    `min_fraction < 1` is for parameters that move lobes across the kinks of Cook-Torrance's min()
+    or Oren-Nayar's max() (normals bent by bump or noise), where FD means nothing in a few rows.
+    """
     assert np.all(np.isfinite(ad)), f"{what}: non-finite derivative"
     bound = rtol * np.abs(fd) + rounding + 1e-5 * np.abs(fd).max() + 1e-12
     bad = np.abs(ad - fd) > bound
-    assert not bad.any(), (
-        f"{what}: {bad.sum()} of {bad.size} derivatives differ, e.g. AD {ad[bad][:3]} vs FD "
+    rows = bad.reshape(len(bad), -1).any(axis=1)
+    assert rows.mean() <= 1.0 - min_fraction, (
+        f"{what}: {rows.sum()} of {len(rows)} rows differ, e.g. AD {ad[bad][:3]} vs FD "
         f"{fd[bad][:3]} (allowed {bound[bad][:3]})"
     )
 
