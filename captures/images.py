@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import tempfile
 from pathlib import Path
@@ -10,6 +11,9 @@ import numpy as np
 import OpenImageIO as oiio
 
 from .errors import CaptureError
+
+log = logging.getLogger(__name__)
+ENCODINGS = ("linear", "srgb", "raw")
 
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
@@ -76,3 +80,49 @@ def write_image(path: str | Path, linear: np.ndarray) -> Path:
         if os.path.exists(tmp):
             os.unlink(tmp)
     return path
+
+
+def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """(linear RGB float32 (H, W, 3), saturated (H, W) bool, warnings) of an image file.
+
+    `encoding` "linear" keeps values as stored (integers normalised to [0, 1]); "srgb" decodes
+    them; "raw" develops camera RAW (see `captures.raw`, as-shot white balance). Integer files
+    mark pixels at the top code as saturated; float files never are.
+    """
+    path = Path(path)
+    if encoding not in ENCODINGS:
+        raise CaptureError(f"{path}: encoding {encoding!r}; choose one of {', '.join(ENCODINGS)}")
+    if encoding == "raw":
+        from .raw import develop, read_raw
+
+        raw = read_raw(path)
+        return develop(raw), raw.saturated, []
+    buf = oiio.ImageInput.open(str(path)) if path.exists() else None
+    if buf is None:
+        if not path.exists():
+            raise CaptureError(f"{path}: no such image file")
+        raise CaptureError(f"{path}: not an image OpenImageIO can read ({oiio.geterror()})")
+    spec = buf.spec()
+    buf.close()
+    pixels = read_image(path)
+    warnings = []
+    integer = spec.format.basetype in (oiio.UINT8, oiio.UINT16, oiio.UINT32)
+    if pixels.shape[2] == 1:
+        pixels = np.repeat(pixels, 3, axis=2)
+    elif pixels.shape[2] == 2 or pixels.shape[2] > 4:
+        raise CaptureError(f"{path}: {pixels.shape[2]} channels; expected grey, RGB or RGBA")
+    pixels = pixels[..., :3]
+    saturated = np.any(pixels >= 1.0, axis=-1) if integer else np.zeros(pixels.shape[:2], bool)
+    if encoding == "srgb":
+        pixels = srgb_decode(pixels)
+    elif spec.format.basetype == oiio.UINT8:
+        warnings.append(
+            f"{path}: 8-bit data declared linear; 8-bit photos are almost always sRGB-encoded "
+            '(declare encoding = "srgb")'
+        )
+    return pixels.astype(np.float32), saturated, warnings
+
+
+def read_mask(path: str | Path) -> np.ndarray:
+    """A boolean object mask from an image file (any channel > 0.5)."""
+    return np.any(read_image(path)[..., :3] > 0.5, axis=-1)

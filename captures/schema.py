@@ -351,3 +351,86 @@ def parse_scene(data: dict, file: Path) -> Scene:
         integrator=t.string("integrator", "prb", INTEGRATORS),
         max_depth=t.number("max_depth", int, default=8, minimum=1),
     )
+
+
+def scene_to_table(scene: Scene, folder: Path | None = None) -> dict:
+    """The `[scene]` table of `scene` without cameras (a capture's come from its views). File
+    paths are written relative to `folder`."""
+
+    def rel(path: Path) -> str:
+        return str(Path(path).relative_to(folder)) if folder else str(path)
+
+    g = scene.geometry
+    if isinstance(g, Sphere):
+        geometry = {"type": "sphere", "center": list(g.center), "radius": g.radius}
+    elif isinstance(g, Cup):
+        geometry = {
+            "type": "cup",
+            "handle": g.shape.handle,
+            **{k: getattr(g.shape, k) for k in _CUP_KEYS},
+        }
+    else:
+        geometry = {"type": "obj", "file": rel(g.path)}
+    lights = []
+    for light in scene.lights:
+        if isinstance(light, RectLight):
+            lights.append(
+                {
+                    "type": "rectangle",
+                    "center": list(light.center),
+                    "u_axis": list(light.u_axis),
+                    "v_axis": list(light.v_axis),
+                    "emit_direction": list(light.emit_direction),
+                    "size": list(light.size),
+                    "radiance": list(light.radiance),
+                }
+            )
+        elif isinstance(light, PointLight):
+            lights.append(
+                {
+                    "type": "point",
+                    "position": list(light.position),
+                    "intensity": list(light.intensity),
+                }
+            )
+        else:
+            lights.append(
+                {
+                    "type": "directional",
+                    "direction": list(light.direction),
+                    "irradiance": list(light.irradiance),
+                }
+            )
+    env = scene.environment
+    environment = (
+        {"type": "envmap", "file": rel(env.path), "scale": env.scale}
+        if isinstance(env, EnvMap)
+        else {"type": "constant", "radiance": list(env)}
+    )
+    return {
+        "geometry": geometry,
+        "environment": environment,
+        "integrator": scene.integrator,
+        "max_depth": scene.max_depth,
+        "lights": lights,
+    }
+
+
+def camera_to_table(camera: Camera) -> dict:
+    out = {
+        "type": camera.kind,
+        "origin": list(camera.origin),
+        "target": list(camera.target),
+        "up": list(camera.up),
+        "width": camera.width,
+        "height": camera.height,
+    }
+    if camera.kind == "orthographic":
+        out["ortho_width"] = camera.ortho_width
+    else:
+        out["fov_x_deg"] = camera.fov_x_deg
+        if camera.aperture_radius > 0:
+            out["aperture_radius"] = camera.aperture_radius
+            if camera.focus_distance:
+                out["focus_distance"] = camera.focus_distance
+    return out
