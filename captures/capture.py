@@ -38,7 +38,7 @@ import numpy as np
 from .errors import CaptureError
 from .images import ENCODINGS, read_linear, read_mask
 from .raw import develop, read_raw
-from .scene import Camera, Scene
+from .scene import Camera, Scene, bounding_sphere, sees
 from .schema import Table, parse_scene
 from .weights import downscale, validity
 
@@ -197,6 +197,13 @@ def load_capture(path: str | Path) -> Capture:
         view.camera = replace(camera, width=camera.width // factor, height=camera.height // factor)
         scaled.append(view.camera)
     scene = replace(scene, cameras=tuple(scaled))
+    center, radius = bounding_sphere(scene.geometry)
+    for i, camera in enumerate(scene.cameras):
+        if not sees(camera, center, radius):
+            raise CaptureError(
+                f"{path}: views[{i}].camera does not see the object (centre {center.round(3)}, "
+                f"radius {radius:.3g}): check its origin, target and field of view"
+            )
     truth = _truth(doc.get("truth", {}), path)
     for message in warnings:
         log.warning(message)

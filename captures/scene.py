@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from .geometry import CupShape
 
 Vec3 = tuple[float, float, float]
@@ -127,3 +129,39 @@ class Scene:
     integrator: str = "prb"
     max_depth: int = 8
     meta: dict = field(default_factory=dict, compare=False)
+
+
+def bounding_sphere(geometry: Geometry) -> tuple[np.ndarray, float]:
+    """(centre, radius) enclosing the object."""
+    if isinstance(geometry, Sphere):
+        return np.asarray(geometry.center, float), float(geometry.radius)
+    if isinstance(geometry, Cup):
+        s = geometry.shape
+        reach = s.radius_top + (0.045 if s.handle else 0.0)
+        return np.array([0.0, 0.0, s.height / 2]), float(np.hypot(reach, s.height / 2 + s.wall))
+    points = [
+        [float(x) for x in line.split()[1:4]]
+        for line in Path(geometry.path).read_text(errors="replace").splitlines()
+        if line.startswith("v ")
+    ]
+    lo, hi = np.min(points, axis=0), np.max(points, axis=0)
+    return (lo + hi) / 2, float(np.linalg.norm(hi - lo) / 2)
+
+
+def sees(camera: Camera, center: np.ndarray, radius: float) -> bool:
+    """Whether any of the sphere (center, radius) falls inside the camera's view."""
+    origin, forward = np.asarray(camera.origin, float), np.subtract(camera.target, camera.origin)
+    forward = forward / np.linalg.norm(forward)
+    offset = center - origin
+    depth = offset @ forward
+    lateral = np.linalg.norm(offset - depth * forward)
+    aspect = camera.height / camera.width
+    if camera.kind == "orthographic":
+        half = camera.ortho_width / 2 * np.hypot(1.0, aspect)
+        return depth + radius > 0 and lateral < half + radius
+    if depth + radius <= 0:
+        return False
+    half_x = np.tan(np.radians(camera.fov_x_deg) / 2)
+    half_diag = np.arctan(half_x * np.hypot(1.0, aspect))  # the corners' half angle
+    angle = np.arctan2(lateral, depth)
+    return angle < half_diag + np.arcsin(min(1.0, radius / max(np.linalg.norm(offset), 1e-12)))

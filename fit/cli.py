@@ -122,6 +122,119 @@ def bench(
         console.print(f"wrote {out}")
 
 
+@app.command()
+def synth(
+    config: Annotated[
+        Path, typer.Argument(help="Render config (TOML) whose material is the truth.")
+    ],
+    out: Annotated[Path, typer.Option(help="New capture folder to write.")],
+    scene: Annotated[
+        Path | None, typer.Option(help="TOML whose [scene] replaces the config's.")
+    ] = None,
+    fmt: Annotated[
+        str, typer.Option("--format", help="exr (linear), png (16-bit sRGB), jpg (8-bit sRGB).")
+    ] = "exr",
+    spp: Annotated[
+        int | None, typer.Option(help="Samples per pixel (default: the config's).")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the renders and the degradations.")] = 0,
+    shot: Annotated[float, typer.Option(help="Shot noise: variance = shot * signal.")] = 0.0,
+    read: Annotated[float, typer.Option(help="Read noise standard deviation.")] = 0.0,
+    exposure_ev: Annotated[
+        float, typer.Option(help="Random exposure offset per view, +- EV.")
+    ] = 0.0,
+    variant: VariantOption = None,
+) -> None:
+    """Render a synthetic capture (images, manifest, [truth]) from a config."""
+    import tomllib
+
+    from captures import CaptureError, parse_scene
+
+    from .config import load_render_config
+
+    try:
+        cfg = load_render_config(config)
+        the_scene = cfg.scene
+        if scene is not None:
+            doc = tomllib.loads(scene.read_text())
+            if "scene" not in doc:
+                raise CaptureError(f"{scene}: no [scene] table")
+            the_scene = parse_scene(doc["scene"], scene)
+    except (CaptureError, OSError, tomllib.TOMLDecodeError) as err:
+        raise _fail(err, 2) from None
+    _start(variant)
+    from .synth import FORMATS, Degradation, synthesize
+
+    if fmt not in FORMATS:
+        raise _fail(ValueError(f"--format {fmt!r}: choose one of {', '.join(FORMATS)}"), 2)
+    spp = spp or cfg.spp
+    with _progress() as bar:
+        tasks = [bar.add_task(f"view {i}", total=spp) for i in range(len(the_scene.cameras))]
+        try:
+            path = synthesize(
+                the_scene,
+                cfg.material,
+                out,
+                spp,
+                seed,
+                fmt,
+                Degradation(shot, read, exposure_ev),
+                lambda view, n: bar.update(tasks[view], completed=n),
+            )
+        except (FileExistsError, ValueError) as err:
+            raise _fail(err, 2) from None
+    console.print(f"wrote {path}")
+
+
+@app.command()
+def inspect(
+    capture: Annotated[
+        Path,
+        typer.Argument(
+            help="capture.toml (or its folder), a peer scene.json, or a DiLiGenT folder."
+        ),
+    ],
+    sheet: Annotated[
+        Path | None, typer.Option(help="Contact sheet PNG (default: out/inspect-<name>.png).")
+    ] = None,
+    silhouette: Annotated[bool, typer.Option(help="Render the scene's silhouette (IoU).")] = True,
+    downscale: Annotated[int, typer.Option(help="DiLiGenT only: area-average by this factor.")] = 1,
+    variant: VariantOption = None,
+) -> None:
+    """A table of the views (size, gain, valid pixels, silhouette IoU) and a contact sheet."""
+    from rich.table import Table as RichTable
+
+    from captures import CaptureError
+
+    _start(variant)
+    from .inspect import contact_sheet, open_capture, silhouettes, summary
+
+    try:
+        cap = open_capture(capture, downscale)
+    except CaptureError as err:
+        raise _fail(err, 2) from None
+    for warning in cap.warnings:
+        console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
+    coverage = silhouettes(cap) if silhouette else None
+    rows = summary(cap, coverage)
+    table = RichTable(title=f"{capture}: {len(rows)} views")
+    for column in ("view", "size", "gain", "valid", "max", "iou"):
+        table.add_column(column)
+    for row in rows:
+        table.add_row(
+            row["view"],
+            row["size"],
+            f"{row['gain']:.3g}",
+            f"{row['valid']:.1%}",
+            f"{row['max']:.3g}",
+            f"{row['iou']:.3f}" if "iou" in row else "-",
+        )
+    console.print(table)
+    name = capture.stem if capture.name != "scene.json" else capture.parent.name
+    out = contact_sheet(cap, coverage, sheet or Path("out") / f"inspect-{name}.png")
+    console.print(f"wrote {out}")
+
+
 def main() -> None:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
