@@ -1,0 +1,282 @@
+"""Captures: RAW development, readers, validity weights, resampling, manifests and bad input."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from captures import CaptureError
+from captures.capture import load_capture, manifest_text
+from captures.images import read_linear, write_image
+from captures.importers import diligent_capture, fit_sphere_to_mask, peer_capture
+from captures.raw import develop, read_raw, white_balance_from_patch
+from captures.weights import downscale, validity
+
+# Neutral patches of colorchart.dng (../shared/data/README.md), full-resolution coordinates
+PATCH_Y, PATCH_X = 928, (704, 820, 936, 1048, 1164, 1276)
+
+
+def patch(image, x, y=PATCH_Y, half=6):
+    """Mean of a 24 px box (12 superpixels) of the half-resolution development."""
+    return (
+        image[y // 2 - half : y // 2 + half, x // 2 - half : x // 2 + half].reshape(-1, 3).mean(0)
+    )
+
+
+@pytest.fixture(scope="module")
+def chart(shared_data):
+    return read_raw(shared_data / "raw" / "colorchart.dng")
+
+
+def test_raw_is_linear_black_removed_in_unit_range(chart):
+    cam = chart.camera_rgb
+    assert cam.shape == (578, 867, 3)  # 1734x1156 visible, 2x2 superpixels
+    assert cam.min() >= 0 and cam.max() <= 1
+    # black level removed: the black patch is near 0, the white patch well above it
+    assert patch(cam, PATCH_X[-1]).max() < 0.01 < patch(cam, PATCH_X[0]).min()
+    # linear: the neutral row's camera ratios are those the data README reports
+    white = patch(cam, PATCH_X[0])
+    assert white[0] / white[1] == pytest.approx(0.69, abs=0.02)
+    assert white[2] / white[1] == pytest.approx(0.44, abs=0.02)
+
+
+def test_as_shot_white_balance_is_rawpys(chart, shared_data):
+    import rawpy
+
+    with rawpy.imread(str(shared_data / "raw" / "colorchart.dng")) as raw:
+        reported = np.array(raw.camera_whitebalance[:3])
+    np.testing.assert_allclose(chart.camera_wb, reported / reported[1])
+    developed = develop(chart, "camera")
+    expected = np.clip((chart.camera_rgb * chart.camera_wb) @ chart.color_matrix.T, 0, None)
+    np.testing.assert_allclose(developed, expected, rtol=1e-5, atol=1e-7)
+
+
+def test_white_patch_balance_makes_greys_neutral(chart):
+    """White balance from the white patch: the next three greys neutral within 8 % (measured:
+    R/G 0.973, 0.953, 0.938; B/G 1.011, 1.000, 0.991) in balanced camera RGB. The colour matrix
+    then amplifies the residual (flare in dim light) to 5-13 % in Rec.709."""
+    multipliers = white_balance_from_patch(chart, PATCH_X[0] // 2, PATCH_Y // 2)
+    balanced = chart.camera_rgb * multipliers
+    white = patch(balanced, PATCH_X[0])
+    assert white[0] / white[1] == pytest.approx(1.0, abs=1e-4)
+    for x in PATCH_X[1:4]:
+        grey = patch(balanced, x)
+        assert grey[0] / grey[1] == pytest.approx(1.0, abs=0.08), x
+        assert grey[2] / grey[1] == pytest.approx(1.0, abs=0.08), x
+
+
+@pytest.mark.parametrize(
+    "name, message",
+    [
+        ("stub_CanonRaw.cr2", "LibRaw cannot decode"),
+        ("stub_CanonRaw.cr3", "LibRaw cannot decode"),
+        ("stub_FujiFilm.raf", "LibRaw cannot decode"),
+        ("stub_Nikon.nef", "LibRaw cannot decode"),
+        ("stub_DNG.dng", "at or below the black level"),
+        ("stub_Panasonic.rw2", "at or below the black level"),
+    ],
+)
+def test_raw_stubs_are_clear_errors(shared_data, name, message):
+    with pytest.raises(CaptureError) as err:
+        read_raw(shared_data / "raw" / name)
+    assert name in str(err.value) and message in str(err.value)
+
+
+def test_readers_decode_as_declared(tmp_path):
+    linear = np.linspace(0, 1, 64 * 3, dtype=np.float32).reshape(8, 8, 3)
+    write_image(tmp_path / "a.exr", linear)
+    write_image(tmp_path / "a.png", linear)  # 16-bit sRGB-encoded
+    exr, sat_exr, _ = read_linear(tmp_path / "a.exr", "linear")
+    png, sat_png, warnings = read_linear(tmp_path / "a.png", "srgb")
+    np.testing.assert_array_equal(exr, linear)
+    np.testing.assert_allclose(png, linear, atol=1e-4)
+    assert not sat_exr.any() and sat_png[-1, -1] and not warnings
+    write_image(tmp_path / "b.jpg", linear)
+    _, _, warnings = read_linear(tmp_path / "b.jpg", "linear")
+    assert "8-bit data declared linear" in warnings[0]
+
+
+def test_validity_weights():
+    image = np.full((20, 20, 3), 0.5, np.float32)
+    image[2, 2] = np.nan
+    image[15, 15] = 0.0
+    saturated = np.zeros((20, 20), bool)
+    saturated[10, 10] = True
+    mask = np.ones((20, 20), bool)
+    mask[:, 18:] = False
+    clean, weight = validity(image, saturated, mask, dilate=2)
+    assert np.all(np.isfinite(clean)) and clean[2, 2].sum() == 0
+    assert weight[2, 2] == 0 and weight[15, 15] == 0 and weight[:, 18:].sum() == 0
+    assert weight[10, 8] == 0 and weight[10, 12] == 0 and weight[10, 13] == 1  # dilated by 2
+    assert weight[5, 5] == 1
+
+
+def test_downscale_by_area():
+    image = np.arange(16 * 3, dtype=np.float32).reshape(4, 4, 3)
+    weight = np.ones((4, 4), np.float32)
+    weight[0, 0] = 0
+    small, w = downscale(image, weight, 2)
+    assert small.shape == (2, 2, 3) and w[0, 0] == 0.75 and w[1, 1] == 1
+    np.testing.assert_allclose(small[0, 0], image[[0, 1, 1], [1, 0, 1]].mean(0))
+    with pytest.raises(CaptureError, match="does not divide"):
+        downscale(image, weight, 3)
+
+
+def test_diligent_loads_with_normalised_lights(shared_data):
+    folder = shared_data / "diligent-ball"
+    capture = diligent_capture(folder)
+    assert len(capture.views) == 16
+    intensities = np.loadtxt(folder / "light_intensities.txt")
+    first = capture.views[0]
+    raw, _, _ = read_linear(folder / "001.png", "linear")
+    inside = first.weight > 0
+    np.testing.assert_allclose(first.image[inside], (raw / intensities[0])[inside], rtol=1e-5)
+    for view in capture.views:
+        (light,) = view.lights
+        assert np.linalg.norm(light.direction) == pytest.approx(1.0)
+        assert light.direction[2] < 0  # light travels away from the camera side, towards the ball
+    mask = capture.scene.meta["mask"]
+    cx, cy, r = fit_sphere_to_mask(mask)
+    ys, xs = np.nonzero(mask)
+    assert r == pytest.approx((xs.max() - xs.min() + 1) / 2, abs=1.5)  # a disc: area = extent
+    assert r == pytest.approx((ys.max() - ys.min() + 1) / 2, abs=1.5)
+    assert cx == pytest.approx((xs.max() + xs.min() + 1) / 2, abs=1.0)
+    assert cy == pytest.approx((ys.max() + ys.min() + 1) / 2, abs=1.0)
+
+
+def test_peer_capture_truth(shared_data):
+    capture = peer_capture(shared_data / "peer-cycles" / "sphere-blue" / "scene.json")
+    assert capture.truth["glaze.roughness"] == pytest.approx(0.25**2)
+    assert len(capture.views) == 3 and all(v.weight.mean() == 1 for v in capture.views)
+
+
+# Manifests ---------------------------------------------------------------------------------------
+
+SCENE = {"geometry": "sphere", "environment": [0.1, 0.1, 0.1]}
+CAMERA = {"origin": [0.0, -5.0, 0.0], "target": [0.0, 0.0, 0.0], "fov_x_deg": 30.0}
+
+
+def make_capture(tmp_path, views=None, capture=None, truth=None, size=(8, 6)) -> Path:
+    image = np.full((size[1], size[0], 3), 0.25, np.float32)
+    write_image(tmp_path / "v0.exr", image)
+    views = views if views is not None else [{"image": "v0.exr", "camera": dict(CAMERA)}]
+    text = manifest_text(capture or {"encoding": "linear"}, SCENE, views, truth or {})
+    (tmp_path / "capture.toml").write_text(text)
+    return tmp_path / "capture.toml"
+
+
+def test_manifest_loads(tmp_path):
+    path = make_capture(
+        tmp_path,
+        views=[{"image": "v0.exr", "gain": 2.0, "camera": dict(CAMERA)}],
+        truth={"glaze.ior": 1.5},
+    )
+    capture = load_capture(path.parent)
+    (view,) = capture.views
+    np.testing.assert_allclose(view.image, 0.125)
+    assert view.camera.width == 8 and capture.truth == {"glaze.ior": 1.5}
+
+
+def test_manifest_downscale_adjusts_cameras(tmp_path):
+    path = make_capture(tmp_path, capture={"encoding": "linear", "downscale": 2})
+    view = load_capture(path).views[0]
+    assert view.image.shape == (3, 4, 3) and (view.camera.width, view.camera.height) == (4, 3)
+
+
+def bad(tmp_path, **kw):
+    with pytest.raises(CaptureError) as err:
+        load_capture(make_capture(tmp_path, **kw))
+    assert "capture.toml" in str(err.value)
+    return str(err.value)
+
+
+def test_missing_file(tmp_path):
+    assert "views[0].image = 'none.exr' does not exist" in bad(
+        tmp_path, views=[{"image": "none.exr", "camera": CAMERA}]
+    )
+
+
+def test_corrupt_image(tmp_path):
+    (tmp_path / "broken.png").write_bytes(b"not a png at all")
+    with pytest.raises(CaptureError, match=r"broken\.png"):
+        load_capture(make_capture(tmp_path, views=[{"image": "broken.png", "camera": CAMERA}]))
+
+
+def test_raw_stub_in_a_manifest(tmp_path, shared_data):
+    (tmp_path / "x.nef").write_bytes((shared_data / "raw" / "stub_Nikon.nef").read_bytes())
+    path = make_capture(
+        tmp_path, capture={"encoding": "raw"}, views=[{"image": "x.nef", "camera": CAMERA}]
+    )
+    with pytest.raises(CaptureError, match=r"x\.nef: LibRaw cannot decode"):
+        load_capture(path)
+
+
+def test_camera_size_must_match_image(tmp_path):
+    assert "views[0].camera is 10x6 but v0.exr is 8x6" in bad(
+        tmp_path, views=[{"image": "v0.exr", "camera": {**CAMERA, "width": 10, "height": 6}}]
+    )
+
+
+def test_mask_size_mismatch(tmp_path):
+    write_image(tmp_path / "m.png", np.ones((5, 5, 3), np.float32))
+    assert "views[0].mask is 5x5 but the image is 8x6" in bad(
+        tmp_path, views=[{"image": "v0.exr", "mask": "m.png", "camera": CAMERA}]
+    )
+
+
+def test_nan_pixels_get_zero_weight_and_a_warning(tmp_path, caplog):
+    path = make_capture(tmp_path)
+    image = np.full((6, 8, 3), 0.25, np.float32)
+    image[1, 1] = np.nan
+    write_image(tmp_path / "v0.exr", image)
+    with caplog.at_level(logging.WARNING):
+        capture = load_capture(path)
+    assert capture.views[0].weight[1, 1] == 0 and np.isfinite(capture.views[0].image).all()
+    assert "1 NaN/Inf pixels get weight 0" in caplog.text
+
+
+def test_8bit_declared_linear_warns(tmp_path):
+    write_image(tmp_path / "v.jpg", np.full((6, 8, 3), 0.25, np.float32))
+    capture = load_capture(make_capture(tmp_path, views=[{"image": "v.jpg", "camera": CAMERA}]))
+    assert any("8-bit data declared linear" in w for w in capture.warnings)
+
+
+@pytest.mark.parametrize(
+    "exposure, message",
+    [
+        ({"gain": 0.0}, "views[0].gain = 0.0 must be > 0"),
+        ({"gain": -1.0}, "views[0].gain = -1.0 must be > 0"),
+        ({"gain": 1.0, "exposure_ev": 1.0}, "and exposure_ev both given"),
+    ],
+)
+def test_bad_exposure(tmp_path, exposure, message):
+    assert message in bad(tmp_path, views=[{"image": "v0.exr", **exposure, "camera": CAMERA}])
+
+
+def test_camera_that_does_not_see_the_object(tmp_path):
+    away = {**CAMERA, "target": [0.0, -10.0, 0.0]}
+    assert "views[0].camera does not see the object" in bad(
+        tmp_path, views=[{"image": "v0.exr", "camera": away}]
+    )
+
+
+def test_empty_photo_set(tmp_path):
+    assert "the photo set is empty" in bad(tmp_path, views=[])
+
+
+def test_path_escaping_the_folder(tmp_path):
+    sub = tmp_path / "cap"
+    sub.mkdir()
+    write_image(tmp_path / "outside.exr", np.ones((6, 8, 3), np.float32))
+    assert "points outside the capture folder" in bad(
+        sub, views=[{"image": "../outside.exr", "camera": CAMERA}]
+    )
+
+
+def test_unknown_key(tmp_path):
+    assert "unknown key(s) exposure in [views[0]]" in bad(
+        tmp_path, views=[{"image": "v0.exr", "exposure": 1.0, "camera": CAMERA}]
+    )
