@@ -96,6 +96,11 @@ def contact_sheet(
             ax.axis("off")
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
+    partial = out.with_name(f".{out.name}.partial.png")
+    try:
+        fig.savefig(partial, dpi=110)
+        partial.replace(out)  # whole or not at all
+    finally:
+        plt.close(fig)
+        partial.unlink(missing_ok=True)
     return out
