@@ -1,0 +1,83 @@
+"""The one JAX <-> Dr.Jit bridge: `render(x, seed)` as a JAX function of physical parameter values.
+
+Dr.Jit 1.5 cannot wrap JAX -> Dr.Jit, so the bridge is `jax.pure_callback` into `Renderer`, with two
+derivative modes (see ../shared/FACTS.md for what each supports):
+
+- `"reverse"` (`jax.custom_vjp`): the backward pass is one `render_backward` per view; for many
+  parameters (textures) and for gradient-based minimisers (Adam, BFGS).
+- `"jacobian"` (`jax.custom_jvp`): the callback returns the image and its full Jacobian (one
+  `render_forward` per parameter component) and the tangent is `J @ t` in JAX, so every transform
+  works (jvp, jacfwd, grad, linearize); for least squares on few parameters (Levenberg-Marquardt).
+
+Values cross the boundary as float32; the seed is an int32 scalar under the caller's control.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .renderer import Renderer
+
+MODES = ("reverse", "jacobian")
+
+
+def make_render(renderer: Renderer, mode: str = "reverse"):
+    """`render(x: f32[P], seed: i32[]) -> f32[N]`, differentiable in `x` by `mode`."""
+    if mode not in MODES:
+        raise ValueError(f"mode {mode!r}; choose one of {', '.join(MODES)}")
+    out = jax.ShapeDtypeStruct((renderer.size,), jnp.float32)
+    grad = jax.ShapeDtypeStruct((renderer.n_params,), jnp.float32)
+    jac = jax.ShapeDtypeStruct((renderer.size, renderer.n_params), jnp.float32)
+
+    def _render(x, seed):
+        return renderer.render(np.asarray(x, np.float32), int(seed))
+
+    def _vjp(x, seed, cotangent):
+        return renderer.vjp(np.asarray(x, np.float32), int(seed), np.asarray(cotangent, np.float32))
+
+    def _jacobian(x, seed):
+        return renderer.jacobian(np.asarray(x, np.float32), int(seed))
+
+    def call(x, seed):
+        return jax.pure_callback(_render, out, x, seed, vmap_method="sequential")
+
+    if mode == "reverse":
+
+        @jax.custom_vjp
+        def render(x, seed):
+            return call(x.astype(jnp.float32), seed)
+
+        def fwd(x, seed):
+            return render(x, seed), (x, seed)
+
+        def bwd(residuals, cotangent):
+            x, seed = residuals
+            g = jax.pure_callback(
+                _vjp,
+                grad,
+                x.astype(jnp.float32),
+                seed,
+                cotangent.astype(jnp.float32),
+                vmap_method="sequential",
+            )
+            return g.astype(x.dtype), None
+
+        render.defvjp(fwd, bwd)
+        return render
+
+    @jax.custom_jvp
+    def render(x, seed):
+        return call(x.astype(jnp.float32), seed)
+
+    @render.defjvp
+    def render_jvp(primals, tangents):
+        x, seed = primals
+        tx, _ = tangents
+        image, jacobian = jax.pure_callback(
+            _jacobian, (out, jac), x.astype(jnp.float32), seed, vmap_method="sequential"
+        )
+        return image, jacobian @ tx.astype(jnp.float32)
+
+    return render

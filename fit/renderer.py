@@ -1,0 +1,102 @@
+"""The Mitsuba side of the bridge: render every view for a flat vector of physical parameter
+values, and its derivatives (reverse: a vector-Jacobian product; forward: the full Jacobian)."""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from captures.capture import Capture
+
+from .free import Free
+from .scene import scene_dict
+
+
+class Renderer:
+    """Loaded scenes of a capture's views with one material; parameters `free` are set from flat
+    physical vectors. Scalars stay opaque (the plugins mark them), so changing values between calls
+    does not recompile kernels. All outputs are float32, views flattened and concatenated."""
+
+    def __init__(self, capture: Capture, material: dict, free: list[Free], spp: int):
+        self.free, self.spp = free, spp
+        self.scenes = [
+            mi.load_dict(scene_dict(capture.scene_of(i), material, 0, spp))
+            for i in range(len(capture.views))
+        ]
+        self.params = [mi.traverse(s) for s in self.scenes]
+        for params in self.params:
+            missing = [f.traverse_key for f in free if f.traverse_key not in params]
+            if missing:
+                raise KeyError(f"not in the scene: {', '.join(missing)}")
+            params.keep([f.traverse_key for f in free])
+        self.shapes = [(v.camera.height, v.camera.width, 3) for v in capture.views]
+        self.size = int(sum(np.prod(s) for s in self.shapes))
+        self.n_params = sum(f.size for f in free)
+
+    def _set(self, params, values: np.ndarray, grad: bool = False):
+        i = 0
+        for f in self.free:
+            chunk = [float(x) for x in values[i : i + f.size]]
+            current = params[f.traverse_key]
+            value = type(current)(*chunk) if f.size > 1 else type(current)(chunk[0])
+            if grad:
+                dr.enable_grad(value)
+            params[f.traverse_key] = value
+            i += f.size
+        params.update()
+
+    def render(self, values: np.ndarray, seed: int) -> np.ndarray:
+        out = []
+        for v, (scene, params) in enumerate(zip(self.scenes, self.params, strict=True)):
+            self._set(params, values)
+            image = mi.render(scene, params, spp=self.spp, seed=int(seed) + 7919 * v)
+            out.append(np.asarray(image, dtype=np.float32)[..., :3].ravel())
+        return np.concatenate(out)
+
+    def vjp(self, values: np.ndarray, seed: int, cotangent: np.ndarray) -> np.ndarray:
+        """Gradient of `<cotangent, render(values)>` with respect to `values`."""
+        grad = np.zeros(self.n_params, np.float32)
+        offset = 0
+        for v, (scene, params) in enumerate(zip(self.scenes, self.params, strict=True)):
+            n = int(np.prod(self.shapes[v]))
+            self._set(params, values, grad=True)
+            grad_in = mi.TensorXf(
+                np.ascontiguousarray(
+                    cotangent[offset : offset + n].reshape(self.shapes[v]), np.float32
+                )
+            )
+            scene.integrator().render_backward(
+                scene, params, grad_in, seed=int(seed) + 7919 * v, spp=self.spp
+            )
+            i = 0
+            for f in self.free:
+                grad[i : i + f.size] += np.ravel(dr.grad(params[f.traverse_key])).astype(np.float32)
+                i += f.size
+            self._set(params, values)  # drop the AD state
+            offset += n
+        return grad
+
+    def jacobian(self, values: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """(image, d image / d values) with one forward-mode render per parameter component."""
+        image = self.render(values, seed)
+        jac = np.zeros((self.size, self.n_params), np.float32)
+        offset = 0
+        for v, (scene, params) in enumerate(zip(self.scenes, self.params, strict=True)):
+            n = int(np.prod(self.shapes[v]))
+            column = 0
+            for f in self.free:
+                for c in range(f.size):
+                    self._set(params, values, grad=True)
+                    x = params[f.traverse_key]
+                    tangent = [0.0] * f.size
+                    tangent[c] = 1.0
+                    dr.set_grad(x, type(x)(*tangent) if f.size > 1 else tangent[0])
+                    out = scene.integrator().render_forward(
+                        scene, params, seed=int(seed) + 7919 * v, spp=self.spp
+                    )
+                    jac[offset : offset + n, column] = np.asarray(out, np.float32)[..., :3].ravel()
+                    column += 1
+            self._set(params, values)
+            offset += n
+        return image, jac
