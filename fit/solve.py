@@ -1,0 +1,173 @@
+"""Solvers on the bridge: Levenberg-Marquardt (explicit Jacobian, one shared seed), Adam (optax
+through `optimistix.OptaxMinimiser`, a fresh seed every step), the default schedule (a cheap Adam
+phase, then an LM polish at higher spp), and Gauss-Newton uncertainty from the final Jacobian."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import optimistix as optx
+
+from captures.capture import Capture
+
+from .bridge import make_render
+from .free import Free, as_dict, to_physical, to_unconstrained
+from .renderer import Renderer
+
+
+@dataclass
+class Problem:
+    """What a fit compares: the capture's views against renders of `material` with `free`
+    parameters, weighted by the validity weights (L2)."""
+
+    capture: Capture
+    material: dict
+    free: list[Free]
+
+    def target(self) -> tuple[np.ndarray, np.ndarray]:
+        image = np.concatenate([v.image.ravel() for v in self.capture.views])
+        weight = np.concatenate([np.repeat(v.weight.ravel(), 3) for v in self.capture.views])
+        return image.astype(np.float32), np.sqrt(weight / max(weight.sum() / 3, 1.0)).astype(
+            np.float32
+        )
+
+    def renderer(self, spp: int) -> Renderer:
+        return Renderer(self.capture, self.material, self.free, spp)
+
+
+@dataclass
+class Result:
+    values: dict
+    u: np.ndarray
+    loss: float
+    steps: int
+    history: list[float] = field(default_factory=list)
+    std: dict | None = None
+    correlation: np.ndarray | None = None
+    poorly_determined: list[str] = field(default_factory=list)
+
+
+def _residuals(problem: Problem, renderer: Renderer, mode: str):
+    render = make_render(renderer, mode)
+    target, sqrt_w = (jnp.asarray(a) for a in problem.target())
+
+    def residual(u, seed):
+        x = to_physical(problem.free, u, jnp)
+        return sqrt_w * (render(x, seed) - target)
+
+    return residual
+
+
+def levenberg_marquardt(
+    problem: Problem,
+    u0,
+    spp: int = 32,
+    seed: int = 0,
+    max_steps: int = 30,
+    rtol: float = 1e-4,
+    atol: float = 1e-6,
+) -> Result:
+    """LM on the explicit Jacobian with one shared seed (common random numbers)."""
+    residual = _residuals(problem, problem.renderer(spp), "jacobian")
+    solution = optx.least_squares(
+        residual,
+        optx.LevenbergMarquardt(rtol=rtol, atol=atol),
+        jnp.asarray(u0, jnp.float32),
+        args=jnp.int32(seed),
+        max_steps=max_steps,
+        throw=False,
+    )
+    u = np.asarray(solution.value)
+    r = np.asarray(residual(jnp.asarray(u), jnp.int32(seed)))
+    values = as_dict(problem.free, to_physical(problem.free, u))
+    return Result(values, u, float(0.5 * r @ r), int(solution.stats["num_steps"]))
+
+
+def adam(
+    problem: Problem,
+    u0,
+    steps: int = 100,
+    spp: int = 8,
+    lr: float = 0.05,
+    seed: int = 0,
+    progress: Callable[[int, float], None] | None = None,
+) -> Result:
+    """Adam with a fresh seed every step (a fixed seed converges to its own biased optimum);
+    steps whose loss or gradient is not finite are rejected, never applied."""
+    residual = _residuals(problem, problem.renderer(spp), "reverse")
+
+    def loss(u, seed):
+        r = residual(u, seed)
+        return 0.5 * jnp.dot(r, r), None
+
+    solver = optx.OptaxMinimiser(optax.adam(lr), rtol=0.0, atol=0.0)
+    u = jnp.asarray(u0, jnp.float32)
+    f_struct = jax.ShapeDtypeStruct((), jnp.float32)
+    state = solver.init(loss, u, jnp.int32(seed), {}, f_struct, None, frozenset())
+    step = jax.jit(lambda u, s, st: solver.step(loss, u, s, {}, st, frozenset())[:2])
+    history = []
+    for i in range(steps):
+        new_u, new_state = step(u, jnp.int32(seed * 100003 + i + 1), state)
+        value = float(new_state.f)  # the loss at `u`, before this update
+        if np.all(np.isfinite(np.asarray(new_u))) and np.isfinite(value):
+            u, state = new_u, new_state
+        history.append(value)
+        if progress:
+            progress(i + 1, value)
+    values = as_dict(problem.free, to_physical(problem.free, np.asarray(u)))
+    return Result(values, np.asarray(u), history[-1] if history else float("nan"), steps, history)
+
+
+def uncertainty(
+    problem: Problem, values: dict, spp: int = 64, seed: int = 0, threshold: float = 0.1
+) -> tuple[dict, np.ndarray, list[str]]:
+    """Gauss-Newton covariance `s^2 (J^T W J)^-1` in physical units from the Jacobian at `values`
+    (s^2 = weighted residual sum of squares / (N - P)); returns per-parameter standard deviations,
+    the correlation matrix, and the parameters whose standard deviation exceeds `threshold` of
+    their range (or that are not determined at all)."""
+    renderer = problem.renderer(spp)
+    x = np.concatenate([np.ravel(values[f.key]) for f in problem.free]).astype(np.float32)
+    image, jac = renderer.jacobian(x, seed)
+    target, sqrt_w = problem.target()
+    r = sqrt_w * (image - target)
+    jw = sqrt_w[:, None] * jac
+    dof = max(int((sqrt_w > 0).sum()) - jac.shape[1], 1)
+    s2 = float(r @ r) / dof
+    cov = s2 * np.linalg.pinv(jw.T @ jw)
+    std_flat = np.sqrt(np.clip(np.diag(cov), 0, None))
+    corr = cov / np.maximum(np.outer(std_flat, std_flat), 1e-30)
+    std, flagged, i = {}, [], 0
+    for f in problem.free:
+        s = std_flat[i : i + f.size]
+        std[f.key] = s.tolist() if f.size > 1 else float(s[0])
+        if np.any(s > threshold * (f.spec.upper - f.spec.lower)) or np.any(s == 0):
+            flagged.append(f.key)
+        i += f.size
+    return std, corr, flagged
+
+
+def default_schedule(
+    problem: Problem,
+    start: dict,
+    seed: int = 0,
+    adam_steps: int = 60,
+    adam_spp: int = 8,
+    lm_spp: int = 64,
+    lm_steps: int = 15,
+    progress: Callable[[int, float], None] | None = None,
+) -> Result:
+    """A cheap Adam phase with fresh seeds, then an LM polish at higher spp with a shared seed,
+    then the uncertainty at the result."""
+    u0 = to_unconstrained(problem.free, start)
+    first = adam(problem, u0, adam_steps, adam_spp, seed=seed, progress=progress)
+    result = levenberg_marquardt(problem, first.u, lm_spp, seed + 1, lm_steps)
+    result.history = [*first.history, result.loss]
+    result.std, result.correlation, result.poorly_determined = uncertainty(
+        problem, result.values, lm_spp, seed + 2
+    )
+    return result

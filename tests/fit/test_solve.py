@@ -1,0 +1,134 @@
+"""The bridge and the solvers on a small synthetic glazed sphere (48x36, one view)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import drjit as dr
+import jax
+import jax.numpy as jnp
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from captures.capture import Capture, View
+from fit.bridge import make_render
+from fit.config import load_render_config
+from fit.free import resolve, to_physical, to_unconstrained
+from fit.render import render
+from fit.scene import scene_dict
+from fit.solve import Problem, default_schedule, levenberg_marquardt
+
+ROOT = Path(__file__).resolve().parents[2]
+KEYS = ["glaze.pigment", "glaze.roughness", "glaze.ior"]
+TRUTH = {"glaze.pigment": [0.1, 0.22, 0.55], "glaze.roughness": 0.0625, "glaze.ior": 1.52}
+
+
+@pytest.fixture(scope="module")
+def problem():
+    cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
+    camera = dataclasses.replace(cfg.scene.cameras[0], width=48, height=36)
+    scene = dataclasses.replace(cfg.scene, cameras=(camera,))
+    target = render(mi.load_dict(scene_dict(scene, cfg.material, 0, 256)), 512, seed=99)
+    capture = Capture(scene, [View("v", target, np.ones((36, 48), np.float32), camera)])
+    return Problem(capture, cfg.material, resolve(cfg.material, KEYS))
+
+
+def truth_vector():
+    return np.array(
+        [*TRUTH["glaze.pigment"], TRUTH["glaze.roughness"], TRUTH["glaze.ior"]], np.float32
+    )
+
+
+def test_free_parameters_resolve_and_round_trip(problem):
+    free = problem.free
+    assert [f.traverse_key for f in free] == [
+        "object.bsdf.pigment.value",
+        "object.bsdf.roughness",
+        "object.bsdf.ior",
+    ]
+    u = to_unconstrained(free, TRUTH)
+    np.testing.assert_allclose(to_physical(free, u), truth_vector(), rtol=1e-6)
+    with pytest.raises(KeyError, match="not a declared parameter"):
+        resolve(problem.material, ["glaze.shininess"])
+    with pytest.raises(KeyError, match="is a glaze, not clay"):
+        resolve(problem.material, ["clay.sigma"])
+
+
+def test_bridge_gradient_equals_mitsubas_own(problem):
+    """JAX's grad through the reverse bridge equals `dr.backward` through `mi.render` (which uses a
+    decorrelated seed for the gradient pass: equal within Monte Carlo noise at 256 spp), and the
+    Jacobian mode gives the reverse mode's gradient (same seed: equal to float precision)."""
+    renderer = problem.renderer(256)
+    x = truth_vector()
+    grads = []
+    for mode in ("reverse", "jacobian"):
+        f = make_render(renderer, mode)
+        grads.append(
+            np.asarray(jax.grad(lambda x, s, f=f: jnp.mean(f(x, s)))(jnp.asarray(x), jnp.int32(5)))
+        )
+    np.testing.assert_allclose(grads[0], grads[1], rtol=1e-3, atol=1e-6)
+    scene, params = renderer.scenes[0], renderer.params[0]
+    renderer._set(params, x, grad=True)
+    image = mi.render(scene, params, spp=256, seed=5)
+    dr.backward(dr.mean(image[..., :3]))
+    own = np.concatenate([np.ravel(dr.grad(params[f.traverse_key])) for f in problem.free])
+    renderer._set(params, x)
+    # roughness barely moves the mean image: its component is at noise level, hence the atol
+    np.testing.assert_allclose(grads[0], own, rtol=0.1, atol=0.1 * np.abs(own).max())
+
+
+@pytest.mark.parametrize("component, h, rtol", [(1, 0.01, 0.03), (4, 0.01, 0.1)])
+def test_jvp_matches_finite_differences(problem, component, h, rtol):
+    """Forward-mode tangents equal central differences of renders with a shared seed (pigment
+    green: linear; ior: smooth, but it also moves the lobe choice, so FD is noisier: 8 %)."""
+    renderer = problem.renderer(64)
+    f = make_render(renderer, "jacobian")
+    x = jnp.asarray(truth_vector())
+    t = jnp.zeros(5, jnp.float32).at[component].set(1.0)
+    _, jvp = jax.jvp(lambda x: f(x, jnp.int32(3)), (x,), (t,))
+    fd = (f(x + h * t, jnp.int32(3)) - f(x - h * t, jnp.int32(3))) / (2 * h)
+    assert float(jnp.sum(jvp)) == pytest.approx(float(jnp.sum(fd)), rel=rtol)
+
+
+def test_render_does_not_recompile(problem):
+    """Scalars are opaque: new parameter values reuse the compiled kernels."""
+    renderer = problem.renderer(4)
+    x = truth_vector()
+    renderer.render(x, 0)
+    before = dr.kernel_history() if hasattr(dr, "kernel_history") else None
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history_clear() if hasattr(dr, "kernel_history_clear") else dr.kernel_history()
+    renderer.render(x * np.float32(1.01), 1)
+    history = dr.kernel_history()
+    dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert before is None or isinstance(before, list)
+    assert history and all(
+        k.get("cache_hit", True) for k in history if k.get("type") == dr.KernelType.JIT
+    )
+
+
+def test_levenberg_marquardt_recovers_the_sphere(problem):
+    start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.2, "glaze.ior": 1.3}
+    result = levenberg_marquardt(problem, to_unconstrained(problem.free, start), spp=32, seed=1)
+    check(result.values)
+
+
+def test_default_schedule_recovers_and_reports_uncertainty(problem):
+    start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.2, "glaze.ior": 1.3}
+    result = default_schedule(problem, start, seed=0, adam_steps=40, lm_steps=12)
+    check(result.values)
+    assert all(np.all(np.asarray(s) > 0) for s in result.std.values())
+    assert result.correlation.shape == (5, 5)
+    np.testing.assert_allclose(np.diag(result.correlation), 1.0, rtol=1e-4)
+    again = default_schedule(problem, start, seed=0, adam_steps=40, lm_steps=12)
+    assert again.values == result.values  # same config and seed: same values
+
+
+def check(values):
+    """Tolerances at 48x36 and 32-64 spp (measured errors: alpha 7-13 %, ior 0.03-0.04, pigment
+    < 0.01); the peer-sphere accuracy targets of issue 5 need its resolution."""
+    np.testing.assert_allclose(values["glaze.pigment"], TRUTH["glaze.pigment"], atol=0.02)
+    assert values["glaze.roughness"] == pytest.approx(TRUTH["glaze.roughness"], rel=0.2)
+    assert values["glaze.ior"] == pytest.approx(TRUTH["glaze.ior"], abs=0.06)
