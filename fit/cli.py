@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 from typing import Annotated
 
+import numpy as np
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -233,6 +234,59 @@ def inspect(
     name = capture.stem if capture.name != "scene.json" else capture.parent.name
     out = contact_sheet(cap, coverage, sheet or Path("out") / f"inspect-{name}.png")
     console.print(f"wrote {out}")
+
+
+@app.command()
+def fit(
+    config: Annotated[Path, typer.Argument(help="Fit config (TOML): capture, [material], [fit].")],
+    out: Annotated[
+        Path | None, typer.Option(help="Output folder (default out/<config name>).")
+    ] = None,
+    variant: VariantOption = None,
+) -> None:
+    """Fit the free material parameters to a capture; print recovered vs known values."""
+    from rich.table import Table as RichTable
+
+    from captures import CaptureError
+
+    from .fitconfig import load_fit_config
+
+    try:
+        cfg = load_fit_config(config)
+    except CaptureError as err:
+        raise _fail(err, 2) from None
+    _start(variant)
+    from .run import run_fit
+
+    out = out or Path("out") / config.stem
+    with _progress() as bar:
+        task = bar.add_task("fit: Adam phase", total=cfg.adam_steps)
+        try:
+            summary = run_fit(cfg, out, lambda phase, n, total: bar.update(task, completed=n))
+        except (CaptureError, KeyError) as err:
+            raise _fail(err, 2) from None
+    table = RichTable(title=f"{config}: {cfg.solver}, {summary['wall_time_s']:.1f} s")
+    for column in ("parameter", "start", "fitted", "std", "known", "error"):
+        table.add_column(column)
+
+    def fmt(value):
+        if value is None:
+            return "-"
+        return ", ".join(f"{v:.4f}" for v in np.ravel(value))
+
+    for key, value in summary["values"].items():
+        table.add_row(
+            key,
+            fmt(summary["start"][key]),
+            fmt(value),
+            fmt(summary["std"][key]),
+            fmt(summary["truth"].get(key)),
+            fmt(summary["error"].get(key)),
+        )
+    console.print(table)
+    if summary["poorly_determined"]:
+        console.print(f"[yellow]poorly determined:[/] {', '.join(summary['poorly_determined'])}")
+    console.print(f"wrote {out / 'summary.json'} and {out / 'loss.png'}")
 
 
 def main() -> None:

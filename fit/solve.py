@@ -156,6 +156,7 @@ def default_schedule(
     start: dict,
     seed: int = 0,
     adam_steps: int = 60,
+    adam_lr: float = 0.1,
     adam_spp: int = 8,
     lm_spp: int = 64,
     lm_steps: int = 15,
@@ -164,7 +165,7 @@ def default_schedule(
     """A cheap Adam phase with fresh seeds, then an LM polish at higher spp with a shared seed,
     then the uncertainty at the result."""
     u0 = to_unconstrained(problem.free, start)
-    first = adam(problem, u0, adam_steps, adam_spp, seed=seed, progress=progress)
+    first = adam(problem, u0, adam_steps, adam_spp, adam_lr, seed=seed, progress=progress)
     result = levenberg_marquardt(problem, first.u, lm_spp, seed + 1, lm_steps)
     result.history = [*first.history, result.loss]
     result.std, result.correlation, result.poorly_determined = uncertainty(

@@ -1,0 +1,98 @@
+"""Fit configs (TOML): which capture, the material (starting values and options), what is free,
+and the solver's schedule. Errors name the file and the key.
+
+```toml
+capture = "../../shared/data/peer-cycles/sphere-blue/scene.json"  # or a capture folder
+[material]                # as in render configs; values are the starting point
+type = "glaze"
+fresnel = "exact"
+[fit]
+free = ["glaze.pigment", "glaze.roughness", "glaze.ior"]
+solver = "schedule"       # schedule (Adam, then LM) | lm | adam
+seed = 0
+adam_steps = 150
+adam_spp = 8
+adam_lr = 0.1
+lm_steps = 15
+lm_spp = 64
+downscale = 1             # area-average the photos (DiLiGenT folders, capture manifests)
+```
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+from captures.schema import Table
+
+from .material import ConfigError, material_dict
+
+SOLVERS = ("schedule", "lm", "adam")
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    path: Path
+    capture: Path
+    material: dict
+    free: list[str]
+    solver: str
+    seed: int
+    adam_steps: int
+    adam_spp: int
+    adam_lr: float
+    lm_steps: int
+    lm_spp: int
+    downscale: int
+
+
+def load_fit_config(path: str | Path) -> FitConfig:
+    path = Path(path)
+    try:
+        doc = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such file") from None
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{path}: not valid TOML ({err})") from None
+    top = Table(doc, path, "top level", ("capture", "material", "fit"))
+    capture = top.path("capture")
+    if "material" not in doc:
+        raise ConfigError(f"{path}: missing [material] (the starting point)")
+    material = material_dict(doc["material"], path)
+    if material is None:
+        raise ConfigError(f"{path}: every layer of [material] is disabled")
+    t = Table(
+        doc.get("fit", {}),
+        path,
+        "fit",
+        (
+            "free",
+            "solver",
+            "seed",
+            "adam_steps",
+            "adam_spp",
+            "adam_lr",
+            "lm_steps",
+            "lm_spp",
+            "downscale",
+        ),
+    )
+    free = t._get("free", None, True)
+    if not isinstance(free, list) or not free or not all(isinstance(k, str) for k in free):
+        raise t.error("free", "must list parameter keys, e.g. ['glaze.roughness']")
+    return FitConfig(
+        path=path,
+        capture=capture,
+        material=material,
+        free=free,
+        solver=t.string("solver", "schedule", SOLVERS),
+        seed=t.number("seed", int, 0, 0),
+        adam_steps=t.number("adam_steps", int, 150, 0),
+        adam_spp=t.number("adam_spp", int, 8, 1),
+        adam_lr=t.positive("adam_lr", 0.1),
+        lm_steps=t.number("lm_steps", int, 15, 0),
+        lm_spp=t.number("lm_spp", int, 64, 1),
+        downscale=t.number("downscale", int, 1, 1),
+    )

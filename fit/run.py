@@ -1,0 +1,124 @@
+"""Run a fit config end to end: capture in, fitted values, uncertainty, summary and plot out."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from .fitconfig import FitConfig
+from .free import Free, resolve, to_unconstrained
+from .inspect import open_capture
+from .solve import Problem, Result, adam, default_schedule, levenberg_marquardt, uncertainty
+
+
+def start_values(material: dict, free: list[Free]) -> dict:
+    """Each free parameter's starting value from the material dict (its declared default when the
+    material does not set it)."""
+    out = {}
+    for f in free:
+        parts = f.key.split(".")
+        if material["type"] == "layered":
+            if parts == ["bump"]:
+                table, name = material, "bump"
+            elif len(parts) == 3 and parts[1] == "mask":
+                table, name = material[f"{parts[0]}_mask"], parts[2]
+            else:
+                table, name = material[parts[0]], parts[1]
+        else:
+            table, name = material, parts[1]
+        value = table.get(name, f.spec.default) if isinstance(table, dict) else f.spec.default
+        if isinstance(value, dict):
+            if value.get("type") != "rgb":
+                raise ValueError(f"{f.key}: a texture cannot be a free parameter here yet")
+            value = value["value"]
+        out[f.key] = value
+    return out
+
+
+def run_fit(
+    cfg: FitConfig, out: Path, progress: Callable[[str, int, int], None] | None = None
+) -> dict:
+    """Fit, then write `summary.json` and `loss.png` into `out`; returns the summary."""
+    capture = open_capture(cfg.capture, cfg.downscale)
+    free = resolve(cfg.material, cfg.free)
+    problem = Problem(capture, cfg.material, free)
+    start = start_values(cfg.material, free)
+
+    def adam_progress(step, loss):
+        if progress:
+            progress("adam", step, cfg.adam_steps)
+
+    began = time.perf_counter()
+    if cfg.solver == "schedule":
+        result = default_schedule(
+            problem,
+            start,
+            cfg.seed,
+            cfg.adam_steps,
+            cfg.adam_lr,
+            cfg.adam_spp,
+            cfg.lm_spp,
+            cfg.lm_steps,
+            adam_progress,
+        )
+    else:
+        u0 = to_unconstrained(free, start)
+        if cfg.solver == "lm":
+            result = levenberg_marquardt(problem, u0, cfg.lm_spp, cfg.seed, cfg.lm_steps)
+        else:
+            result = adam(
+                problem, u0, cfg.adam_steps, cfg.adam_spp, cfg.adam_lr, cfg.seed, adam_progress
+            )
+        result.std, result.correlation, result.poorly_determined = uncertainty(
+            problem, result.values, cfg.lm_spp, cfg.seed + 2
+        )
+    wall = time.perf_counter() - began
+    summary = _summary(cfg, capture.truth, start, result, wall)
+    out.mkdir(parents=True, exist_ok=True)
+    partial = out / ".summary.json.partial"
+    partial.write_text(json.dumps(summary, indent=2))
+    partial.replace(out / "summary.json")
+    _plot(result, out / "loss.png")
+    return summary
+
+
+def _summary(cfg: FitConfig, truth: dict, start: dict, result: Result, wall: float) -> dict:
+    errors = {}
+    for key, value in result.values.items():
+        if key in truth:
+            errors[key] = (np.asarray(value) - np.asarray(truth[key])).tolist()
+    return {
+        "config": str(cfg.path),
+        "capture": str(cfg.capture),
+        "solver": cfg.solver,
+        "seed": cfg.seed,
+        "start": start,
+        "values": result.values,
+        "std": result.std,
+        "correlation": None if result.correlation is None else result.correlation.tolist(),
+        "poorly_determined": result.poorly_determined,
+        "truth": {k: truth[k] for k in result.values if k in truth},
+        "error": errors,
+        "loss": result.loss,
+        "history": result.history,
+        "wall_time_s": wall,
+    }
+
+
+def _plot(result: Result, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3))
+    ax.semilogy(np.arange(len(result.history)), result.history)
+    ax.set_xlabel("step (Adam, then the LM result)")
+    ax.set_ylabel("loss (weighted L2)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
