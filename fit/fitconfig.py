@@ -13,8 +13,11 @@ seed = 0
 adam_steps = 150
 adam_spp = 8
 adam_lr = 0.1
-lm_steps = 15
+lm_steps = 6
 lm_spp = 64
+polish_steps = 50         # Adam, fresh seeds, Polyak-averaged: removes LM's fixed-seed bias
+polish_spp = 32
+polish_lr = 0.01
 downscale = 1             # area-average the photos (DiLiGenT folders, capture manifests)
 ```
 """
@@ -45,6 +48,9 @@ class FitConfig:
     adam_lr: float
     lm_steps: int
     lm_spp: int
+    polish_steps: int
+    polish_spp: int
+    polish_lr: float
     downscale: int
 
 
@@ -76,6 +82,9 @@ def load_fit_config(path: str | Path) -> FitConfig:
             "adam_lr",
             "lm_steps",
             "lm_spp",
+            "polish_steps",
+            "polish_spp",
+            "polish_lr",
             "downscale",
         ),
     )
@@ -94,5 +103,8 @@ def load_fit_config(path: str | Path) -> FitConfig:
         adam_lr=t.positive("adam_lr", 0.1),
         lm_steps=t.number("lm_steps", int, 15, 0),
         lm_spp=t.number("lm_spp", int, 64, 1),
+        polish_steps=t.number("polish_steps", int, 50, 0),
+        polish_spp=t.number("polish_spp", int, 32, 1),
+        polish_lr=t.positive("polish_lr", 0.01),
         downscale=t.number("downscale", int, 1, 1),
     )

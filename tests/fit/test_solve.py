@@ -17,6 +17,7 @@ from fit.bridge import make_render
 from fit.config import load_render_config
 from fit.free import resolve, to_physical, to_unconstrained
 from fit.render import render
+from fit.renderer import GRAD_SEED_OFFSET
 from fit.scene import scene_dict
 from fit.solve import Problem, default_schedule, levenberg_marquardt
 
@@ -56,10 +57,21 @@ def test_free_parameters_resolve_and_round_trip(problem):
         resolve(problem.material, ["clay.sigma"])
 
 
+def test_reverse_and_forward_derivatives_agree(problem):
+    """The VJP (one `render_backward`) equals J^T c with J from one `render_forward` per
+    parameter, when both use the same random numbers."""
+    renderer = problem.renderer(16)
+    x = truth_vector()
+    c = np.random.default_rng(0).normal(size=renderer.size).astype(np.float32)
+    vjp = renderer.vjp(x, 5, c)
+    _, jac = renderer.jacobian(x, 5 + GRAD_SEED_OFFSET)
+    np.testing.assert_allclose(vjp, jac.T @ c, rtol=1e-3, atol=1e-3 * np.abs(vjp).max())
+
+
 def test_bridge_gradient_equals_mitsubas_own(problem):
-    """JAX's grad through the reverse bridge equals `dr.backward` through `mi.render` (which uses a
-    decorrelated seed for the gradient pass: equal within Monte Carlo noise at 256 spp), and the
-    Jacobian mode gives the reverse mode's gradient (same seed: equal to float precision)."""
+    """JAX's grad through the bridge (both modes) equals `dr.backward` through `mi.render`, within
+    Monte Carlo noise at 256 spp (each decorrelates its gradient pass differently). Roughness
+    barely moves the mean image: its component is at noise level, hence the atol."""
     renderer = problem.renderer(256)
     x = truth_vector()
     grads = []
@@ -68,15 +80,14 @@ def test_bridge_gradient_equals_mitsubas_own(problem):
         grads.append(
             np.asarray(jax.grad(lambda x, s, f=f: jnp.mean(f(x, s)))(jnp.asarray(x), jnp.int32(5)))
         )
-    np.testing.assert_allclose(grads[0], grads[1], rtol=1e-3, atol=1e-6)
     scene, params = renderer.scenes[0], renderer.params[0]
     renderer._set(params, x, grad=True)
     image = mi.render(scene, params, spp=256, seed=5)
     dr.backward(dr.mean(image[..., :3]))
     own = np.concatenate([np.ravel(dr.grad(params[f.traverse_key])) for f in problem.free])
     renderer._set(params, x)
-    # roughness barely moves the mean image: its component is at noise level, hence the atol
-    np.testing.assert_allclose(grads[0], own, rtol=0.1, atol=0.1 * np.abs(own).max())
+    for grad in grads:
+        np.testing.assert_allclose(grad, own, rtol=0.1, atol=0.1 * np.abs(own).max())
 
 
 @pytest.mark.parametrize("component, h, rtol", [(1, 0.01, 0.03), (4, 0.01, 0.1)])
@@ -123,7 +134,10 @@ def test_default_schedule_recovers_and_reports_uncertainty(problem):
     assert result.correlation.shape == (5, 5)
     np.testing.assert_allclose(np.diag(result.correlation), 1.0, rtol=1e-4)
     again = default_schedule(problem, start, seed=0, adam_steps=40, lm_steps=12)
-    assert again.values == result.values  # same config and seed: same values
+    # same config and seed: same values (to float32 rounding: the adjoint pass sums gradients
+    # with parallel atomics, whose order varies)
+    for key, value in result.values.items():
+        np.testing.assert_allclose(again.values[key], value, rtol=1e-4)
 
 
 def test_schedule_from_a_bound(problem):
