@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import logging
 import math
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -39,7 +38,7 @@ from .errors import CaptureError
 from .images import ENCODINGS, read_linear, read_mask
 from .raw import develop, read_raw
 from .scene import Camera, Scene, bounding_sphere, sees
-from .schema import Table, parse_scene
+from .schema import Table, load_toml, parse_scene
 from .weights import downscale, validity
 
 log = logging.getLogger(__name__)
@@ -108,12 +107,7 @@ def load_capture(path: str | Path) -> Capture:
     path = Path(path)
     if path.is_dir():
         path = path / "capture.toml"
-    try:
-        doc = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise CaptureError(f"{path}: no such capture manifest") from None
-    except tomllib.TOMLDecodeError as err:
-        raise CaptureError(f"{path}: not valid TOML ({err})") from None
+    doc = load_toml(path, "capture manifest")
     unknown = sorted(set(doc) - {"capture", "scene", "views", "truth"})
     if unknown:
         raise CaptureError(

@@ -30,6 +30,7 @@ temperature = 3200             # kelvin; or color = [r, g, b]
 from __future__ import annotations
 
 import math
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +51,16 @@ from .scene import (
 )
 
 INTEGRATORS = ("prb", "path")
+
+
+def load_toml(path: Path, what: str = "file") -> dict:
+    """A TOML document, or a `CaptureError` naming the file and what is wrong with it."""
+    try:
+        return tomllib.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise CaptureError(f"{path}: no such {what}") from None
+    except tomllib.TOMLDecodeError as err:
+        raise CaptureError(f"{path}: not valid TOML ({err})") from None
 
 
 class Table:

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 from captures import Scene, parse_scene
+from captures.schema import load_toml
 
 from .material import ConfigError, material_dict
 
@@ -20,12 +20,7 @@ class RenderConfig:
 
 def load_render_config(path: str | Path) -> RenderConfig:
     path = Path(path)
-    try:
-        doc = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such file") from None
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"{path}: not valid TOML ({err})") from None
+    doc = load_toml(path, "file")
     unknown = sorted(set(doc) - {"scene", "material", "render"})
     if unknown:
         raise ConfigError(

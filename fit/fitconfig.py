@@ -24,11 +24,10 @@ downscale = 1             # area-average the photos (DiLiGenT folders, capture m
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
-from captures.schema import Table
+from captures.schema import Table, load_toml
 
 from .material import ConfigError, material_dict
 
@@ -56,12 +55,7 @@ class FitConfig:
 
 def load_fit_config(path: str | Path) -> FitConfig:
     path = Path(path)
-    try:
-        doc = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such file") from None
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"{path}: not valid TOML ({err})") from None
+    doc = load_toml(path, "file")
     top = Table(doc, path, "top level", ("capture", "material", "fit"))
     capture = top.path("capture")
     if "material" not in doc:
