@@ -102,10 +102,10 @@ def test_cli_bad_config_writes_nothing(tmp_path):
 
 
 def test_missing_and_invalid_files(tmp_path):
-    with pytest.raises(CaptureError, match="none.toml: no such file"):
+    with pytest.raises(CaptureError, match=r"none\.toml: no such file"):
         load_render_config(tmp_path / "none.toml")
     (tmp_path / "broken.toml").write_text("[scene\n")
-    with pytest.raises(CaptureError, match="broken.toml: not valid TOML"):
+    with pytest.raises(CaptureError, match=r"broken\.toml: not valid TOML"):
         load_render_config(tmp_path / "broken.toml")
 
 
