@@ -1,6 +1,6 @@
 """Solvers on the bridge: Levenberg-Marquardt (explicit Jacobian, one shared seed), Adam (optax
-through `optimistix.OptaxMinimiser`, a fresh seed every step), the default schedule (a cheap Adam
-phase, then an LM polish at higher spp), and Gauss-Newton uncertainty from the final Jacobian."""
+through `optimistix.OptaxMinimiser`, a fresh seed every step), the default schedule (Adam, a few LM
+steps, a Polyak-averaged Adam polish), and Gauss-Newton uncertainty from the final Jacobian."""
 
 from __future__ import annotations
 
@@ -28,6 +28,7 @@ class Problem:
     capture: Capture
     material: dict
     free: list[Free]
+    _renderers: dict = field(default_factory=dict, repr=False, compare=False)
 
     def target(self) -> tuple[np.ndarray, np.ndarray]:
         image = np.concatenate([v.image.ravel() for v in self.capture.views])
@@ -37,7 +38,10 @@ class Problem:
         )
 
     def renderer(self, spp: int) -> Renderer:
-        return Renderer(self.capture, self.material, self.free, spp)
+        """The loaded scenes at `spp` (built once: phases at the same spp share kernels)."""
+        if spp not in self._renderers:
+            self._renderers[spp] = Renderer(self.capture, self.material, self.free, spp)
+        return self._renderers[spp]
 
 
 @dataclass
