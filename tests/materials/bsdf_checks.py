@@ -141,3 +141,25 @@ def albedo(bsdf, theta_deg: float, n: int = 1 << 18, seed: int = 0) -> np.ndarra
     s2 = mi.Point2f(rng.random(n, dtype=np.float32), rng.random(n, dtype=np.float32))
     _, weight = bsdf.sample(mi.BSDFContext(), interaction(wi), s1, s2)
     return rgb(weight).astype(np.float64).mean(axis=0)
+
+
+def assert_consistent(bsdf, si, wo, rtol: float, seed: int = 5) -> None:
+    """`eval_pdf` returns `eval` and `pdf`; a sample's pdf is `pdf(wo)` and its weight is
+    `eval(wo) / pdf(wo)`, all finite, for the interactions `si` and directions `wo` (Vector3f)."""
+    ctx, n = mi.BSDFContext(), dr.width(si.wi)
+    value, pdf = bsdf.eval_pdf(ctx, si, wo)
+    np.testing.assert_allclose(rgb(value), rgb(bsdf.eval(ctx, si, wo)), rtol=rtol, atol=1e-7)
+    np.testing.assert_allclose(np.asarray(pdf), np.asarray(bsdf.pdf(ctx, si, wo)), rtol=rtol)
+    rng = np.random.default_rng(seed)
+    s1 = mi.Float(rng.random(n, dtype=np.float32))
+    s2 = mi.Point2f(rng.random(n, dtype=np.float32), rng.random(n, dtype=np.float32))
+    bs, weight = bsdf.sample(ctx, si, s1, s2)
+    assert np.all(np.isfinite(rgb(weight)))
+    ok = np.asarray(bs.pdf) > 0
+    assert ok.mean() > 0.5
+    sample_rtol = max(rtol * 100, 1e-4)  # bs.wo round-trips through float32 before re-evaluation
+    np.testing.assert_allclose(
+        np.asarray(bs.pdf)[ok], np.asarray(bsdf.pdf(ctx, si, bs.wo))[ok], rtol=sample_rtol
+    )
+    expected = rgb(bsdf.eval(ctx, si, bs.wo))[ok] / np.asarray(bs.pdf)[ok, None]
+    np.testing.assert_allclose(rgb(weight)[ok], expected, rtol=sample_rtol, atol=1e-5)
