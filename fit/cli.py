@@ -277,7 +277,7 @@ def fit(
     for key, value in summary["values"].items():
         table.add_row(
             key,
-            fmt(summary["start"][key]),
+            fmt(summary["start"].get(key)),
             fmt(value),
             fmt(summary["std"][key]),
             fmt(summary["truth"].get(key)),

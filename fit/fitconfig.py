@@ -18,6 +18,7 @@ lm_spp = 64
 polish_steps = 50         # Adam, fresh seeds, Polyak-averaged: removes LM's fixed-seed bias
 polish_spp = 32
 polish_lr = 0.01
+gains = false             # free RGB gain per view but the first (unknown exposure / white balance)
 downscale = 1             # area-average the photos (DiLiGenT folders, capture manifests)
 ```
 """
@@ -50,6 +51,7 @@ class FitConfig:
     polish_steps: int
     polish_spp: int
     polish_lr: float
+    gains: bool
     downscale: int
 
 
@@ -79,6 +81,7 @@ def load_fit_config(path: str | Path) -> FitConfig:
             "polish_steps",
             "polish_spp",
             "polish_lr",
+            "gains",
             "downscale",
         ),
     )
@@ -100,5 +103,6 @@ def load_fit_config(path: str | Path) -> FitConfig:
         polish_steps=t.number("polish_steps", int, 50, 0),
         polish_spp=t.number("polish_spp", int, 32, 1),
         polish_lr=t.positive("polish_lr", 0.01),
+        gains=t.boolean("gains", False),
         downscale=t.number("downscale", int, 1, 1),
     )

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .fitconfig import FitConfig
-from .free import Free, resolve, to_unconstrained
+from .free import Free, resolve
 from .inspect import open_capture
 from .solve import Problem, Result, adam, default_schedule, levenberg_marquardt, uncertainty
 
@@ -45,7 +45,7 @@ def run_fit(
     """Fit, then write `summary.json` and `loss.png` into `out`; returns the summary."""
     capture = open_capture(cfg.capture, cfg.downscale)
     free = resolve(cfg.material, cfg.free)
-    problem = Problem(capture, cfg.material, free)
+    problem = Problem(capture, cfg.material, free, gains=cfg.gains)
     start = start_values(cfg.material, free)
 
     def adam_progress(step, loss):
@@ -58,15 +58,18 @@ def run_fit(
             problem,
             start,
             cfg.seed,
-            cfg.adam_steps,
-            cfg.adam_lr,
-            cfg.adam_spp,
-            cfg.lm_spp,
-            cfg.lm_steps,
-            adam_progress,
+            adam_steps=cfg.adam_steps,
+            adam_lr=cfg.adam_lr,
+            adam_spp=cfg.adam_spp,
+            lm_spp=cfg.lm_spp,
+            lm_steps=cfg.lm_steps,
+            progress=adam_progress,
+            polish_steps=cfg.polish_steps,
+            polish_spp=cfg.polish_spp,
+            polish_lr=cfg.polish_lr,
         )
     else:
-        u0 = to_unconstrained(free, start)
+        u0 = problem.unconstrained(start)
         if cfg.solver == "lm":
             result = levenberg_marquardt(problem, u0, cfg.lm_spp, cfg.seed, cfg.lm_steps)
         else:
@@ -74,7 +77,7 @@ def run_fit(
                 problem, u0, cfg.adam_steps, cfg.adam_spp, cfg.adam_lr, cfg.seed, adam_progress
             )
         result.std, result.correlation, result.poorly_determined = uncertainty(
-            problem, result.values, cfg.lm_spp, cfg.seed + 2
+            problem, result.u, cfg.lm_spp, cfg.seed + 2
         )
     wall = time.perf_counter() - began
     summary = _summary(cfg, capture.truth, start, result, wall)

@@ -23,11 +23,15 @@ from .renderer import Renderer
 @dataclass
 class Problem:
     """What a fit compares: the capture's views against renders of `material` with `free`
-    parameters, weighted by the validity weights (L2)."""
+    parameters, weighted by the validity weights (L2). With `gains`, every view but the first
+    has a free RGB gain (photos rarely share an exact exposure or white balance; the first stays
+    fixed to remove the albedo/gain ambiguity), solved as its logarithm and reported as
+    `gain.<view>`."""
 
     capture: Capture
     material: dict
     free: list[Free]
+    gains: bool = False
     _renderers: dict = field(default_factory=dict, repr=False, compare=False)
 
     def target(self) -> tuple[np.ndarray, np.ndarray]:
@@ -42,6 +46,36 @@ class Problem:
         if spp not in self._renderers:
             self._renderers[spp] = Renderer(self.capture, self.material, self.free, spp)
         return self._renderers[spp]
+
+    @property
+    def n_material(self) -> int:
+        return sum(f.size for f in self.free)
+
+    @property
+    def gain_views(self) -> list:
+        return self.capture.views[1:] if self.gains else []
+
+    def unconstrained(self, start: dict):
+        """The solver's starting vector: material parameters, then log-gains (0: gain 1)."""
+        return np.concatenate(
+            [to_unconstrained(self.free, start), np.zeros(3 * len(self.gain_views))]
+        ).astype(np.float32)
+
+    def values(self, u) -> dict:
+        u = np.asarray(u, dtype=np.float64)
+        out = as_dict(self.free, to_physical(self.free, u[: self.n_material]))
+        for i, view in enumerate(self.gain_views):
+            start = self.n_material + 3 * i
+            out[f"gain.{view.name}"] = np.exp(u[start : start + 3]).tolist()
+        return out
+
+    def gain_multipliers(self, log_gains):
+        """Per-element multipliers of the flattened views (the first view's are 1)."""
+        parts = [jnp.ones(self.capture.views[0].image.size, jnp.float32)]
+        for i, view in enumerate(self.gain_views):
+            gain = jnp.exp(log_gains[3 * i : 3 * i + 3]).astype(jnp.float32)
+            parts.append(jnp.tile(gain, view.image.size // 3))
+        return jnp.concatenate(parts)
 
 
 @dataclass
@@ -59,10 +93,13 @@ class Result:
 def _residuals(problem: Problem, renderer: Renderer, mode: str):
     render = make_render(renderer, mode)
     target, sqrt_w = (jnp.asarray(a) for a in problem.target())
+    n = problem.n_material
 
     def residual(u, seed):
-        x = to_physical(problem.free, u, jnp)
-        return sqrt_w * (render(x, seed) - target)
+        image = render(to_physical(problem.free, u[:n], jnp), seed)
+        if problem.gains:
+            image = image * problem.gain_multipliers(u[n:])
+        return sqrt_w * (image - target)
 
     return residual
 
@@ -88,8 +125,7 @@ def levenberg_marquardt(
     )
     u = np.asarray(solution.value)
     r = np.asarray(residual(jnp.asarray(u), jnp.int32(seed)))
-    values = as_dict(problem.free, to_physical(problem.free, u))
-    return Result(values, u, float(0.5 * r @ r), int(solution.stats["num_steps"]))
+    return Result(problem.values(u), u, float(0.5 * r @ r), int(solution.stats["num_steps"]))
 
 
 def adam(
@@ -130,35 +166,47 @@ def adam(
             progress(i + 1, value)
     if tail:
         u = jnp.asarray(np.mean(tail, axis=0))
-    values = as_dict(problem.free, to_physical(problem.free, np.asarray(u)))
-    return Result(values, np.asarray(u), history[-1] if history else float("nan"), steps, history)
+    u = np.asarray(u)
+    return Result(problem.values(u), u, history[-1] if history else float("nan"), steps, history)
 
 
 def uncertainty(
-    problem: Problem, values: dict, spp: int = 64, seed: int = 0, threshold: float = 0.1
+    problem: Problem, u, spp: int = 64, seed: int = 0, threshold: float = 0.1
 ) -> tuple[dict, np.ndarray, list[str]]:
-    """Gauss-Newton covariance `s^2 (J^T W J)^-1` in physical units from the Jacobian at `values`
-    (s^2 = weighted residual sum of squares / (N - P)); returns per-parameter standard deviations,
-    the correlation matrix, and the parameters whose standard deviation exceeds `threshold` of
-    their range (or that are not determined at all)."""
-    renderer = problem.renderer(spp)
-    x = np.concatenate([np.ravel(values[f.key]) for f in problem.free]).astype(np.float32)
-    image, jac = renderer.jacobian(x, seed)
-    target, sqrt_w = problem.target()
-    r = sqrt_w * (image - target)
-    jw = sqrt_w[:, None] * jac
-    dof = max(int((sqrt_w > 0).sum()) - jac.shape[1], 1)
-    s2 = float(r @ r) / dof
-    cov = s2 * np.linalg.pinv(jw.T @ jw)
+    """Gauss-Newton covariance `s^2 (J^T W J)^-1` at the solver's vector `u`, mapped to physical
+    units through the transforms' derivatives (s^2 = weighted residual sum of squares / (N - P)).
+    Returns per-parameter standard deviations, the correlation matrix, and the parameters whose
+    standard deviation exceeds `threshold` of their range (of their value, for gains) or that are
+    not determined at all."""
+    residual = _residuals(problem, problem.renderer(spp), "jacobian")
+    u = jnp.asarray(u, jnp.float32)
+    r = np.asarray(residual(u, jnp.int32(seed)), np.float64)
+    jac = np.asarray(jax.jacfwd(residual)(u, jnp.int32(seed)), np.float64)
+    n = problem.n_material
+    dxdu = np.concatenate(
+        [
+            np.diag(np.asarray(jax.jacfwd(lambda v: to_physical(problem.free, v, jnp))(u[:n]))),
+            np.exp(np.asarray(u[n:], np.float64)),
+        ]
+    )
+    dof = max(int(np.count_nonzero(np.any(jac != 0, axis=1))) - jac.shape[1], 1)
+    cov = float(r @ r) / dof * np.linalg.pinv(jac.T @ jac)
+    cov = cov * np.outer(dxdu, dxdu)
     std_flat = np.sqrt(np.clip(np.diag(cov), 0, None))
     corr = cov / np.maximum(np.outer(std_flat, std_flat), 1e-30)
+    values = problem.values(np.asarray(u))
     std, flagged, i = {}, [], 0
-    for f in problem.free:
-        s = std_flat[i : i + f.size]
-        std[f.key] = s.tolist() if f.size > 1 else float(s[0])
-        if np.any(s > threshold * (f.spec.upper - f.spec.lower)) or np.any(s == 0):
-            flagged.append(f.key)
-        i += f.size
+    scales = [f.spec.upper - f.spec.lower for f in problem.free]
+    sizes = [f.size for f in problem.free] + [3] * len(problem.gain_views)
+    for key, size, scale in zip(
+        values, sizes, scales + [None] * len(problem.gain_views), strict=True
+    ):
+        s = std_flat[i : i + size]
+        std[key] = s.tolist() if size > 1 else float(s[0])
+        reference = scale if scale is not None else np.asarray(values[key])
+        if np.any(s > threshold * reference) or np.any(s == 0):
+            flagged.append(key)
+        i += size
     return std, corr, flagged
 
 
@@ -184,7 +232,7 @@ def default_schedule(
     3. Adam with fresh seeds, a small rate and Polyak averaging of the last 60 % of the iterates:
        removes the fixed seed's bias (measured on the Cycles sphere: alpha +4-7 % after LM alone).
     """
-    u0 = to_unconstrained(problem.free, start)
+    u0 = problem.unconstrained(start)
     first = adam(problem, u0, adam_steps, adam_spp, adam_lr, seed=seed, progress=progress)
     middle = levenberg_marquardt(problem, first.u, lm_spp, seed + 1, lm_steps)
     result = adam(
@@ -199,6 +247,6 @@ def default_schedule(
     result.steps = first.steps + middle.steps + result.steps
     result.history = [*first.history, middle.loss, *result.history]
     result.std, result.correlation, result.poorly_determined = uncertainty(
-        problem, result.values, lm_spp, seed + 3
+        problem, result.u, lm_spp, seed + 3
     )
     return result

@@ -19,7 +19,7 @@ from fit.free import resolve, to_physical, to_unconstrained
 from fit.render import render
 from fit.renderer import GRAD_SEED_OFFSET
 from fit.scene import scene_dict
-from fit.solve import Problem, default_schedule, levenberg_marquardt
+from fit.solve import Problem, default_schedule, levenberg_marquardt, uncertainty
 
 ROOT = Path(__file__).resolve().parents[2]
 KEYS = ["glaze.pigment", "glaze.roughness", "glaze.ior"]
@@ -154,3 +154,38 @@ def check(values):
     np.testing.assert_allclose(values["glaze.pigment"], TRUTH["glaze.pigment"], atol=0.02)
     assert values["glaze.roughness"] == pytest.approx(TRUTH["glaze.roughness"], rel=0.2)
     assert values["glaze.ior"] == pytest.approx(TRUTH["glaze.ior"], abs=0.06)
+
+
+def test_per_view_gains_are_recovered():
+    """Two views, the second photographed 25 % brighter in red and 10 % darker in green: with
+    free gains (the first view's fixed) and a free pigment, LM recovers both.
+
+    A gain fitted against a noisy render is biased low by about Var/I^2 (noise inflates the
+    render's energy): measured -5 % at 32 spp, hence 128 spp here.
+
+    (With roughness and ior free too, LM at 32 spp lands at alpha +30 %, ior +0.07 and gains
+    -5 %: a gain also scales the highlight, so it trades against ior. Measured; left for the
+    fitter's next round: more views, the default schedule, priors on gains.)"""
+    from captures.scene import Camera
+
+    cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
+    cameras = (
+        dataclasses.replace(cfg.scene.cameras[0], width=48, height=36),
+        Camera((3.5, -3.5, 0.8), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 36.0, 48, 36),
+    )
+    scene = dataclasses.replace(cfg.scene, cameras=cameras)
+    gain = np.array([1.25, 0.9, 1.0], np.float32)
+    views = []
+    for i, camera in enumerate(cameras):
+        target = render(mi.load_dict(scene_dict(scene, cfg.material, i, 256)), 512, seed=99 + i)
+        views.append(
+            View(f"v{i}", target * (gain if i else 1.0), np.ones((36, 48), np.float32), camera)
+        )
+    free = resolve(cfg.material, ["glaze.pigment"])
+    problem = Problem(Capture(scene, views), cfg.material, free, gains=True)
+    start = {"glaze.pigment": [0.3, 0.3, 0.3]}
+    result = levenberg_marquardt(problem, problem.unconstrained(start), spp=128, seed=1)
+    np.testing.assert_allclose(result.values["gain.v1"], gain, rtol=0.03)
+    np.testing.assert_allclose(result.values["glaze.pigment"], TRUTH["glaze.pigment"], atol=0.02)
+    std, corr, _ = uncertainty(problem, result.u, spp=32, seed=2)
+    assert len(std["gain.v1"]) == 3 and corr.shape == (6, 6)
