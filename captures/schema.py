@@ -72,7 +72,8 @@ class Table:
         unknown = sorted(set(data) - set(known))
         if unknown:  # before missing keys: a misspelt key is the likelier mistake
             raise CaptureError(
-                f"{file}: unknown key(s) {', '.join(unknown)} in [{where}]; "
+                f"{file}: unknown key(s) {', '.join(unknown)} in "
+                f"{f'[{where}]' if where else 'the top level'}; "
                 f"known: {', '.join(known)}"
             )
         self.data, self.file, self.where = data, file, where
@@ -81,12 +82,14 @@ class Table:
         return key in self.data
 
     def error(self, key, problem) -> CaptureError:
-        return CaptureError(f"{self.file}: {self.where}.{key} {problem}")
+        name = f"{self.where}.{key}" if self.where else key
+        return CaptureError(f"{self.file}: {name} {problem}")
 
     def _get(self, key, default, required):
         if key not in self.data:
             if required:
-                raise CaptureError(f"{self.file}: [{self.where}] needs {key!r}")
+                place = f"[{self.where}]" if self.where else "the top level"
+                raise CaptureError(f"{self.file}: {place} needs {key!r}")
             return default
         return self.data[key]
 

@@ -58,7 +58,7 @@ class FitConfig:
 def load_fit_config(path: str | Path) -> FitConfig:
     path = Path(path)
     doc = load_toml(path, "file")
-    top = Table(doc, path, "top level", ("capture", "material", "fit"))
+    top = Table(doc, path, "", ("capture", "material", "fit"))
     capture = top.path("capture")
     if "material" not in doc:
         raise ConfigError(f"{path}: missing [material] (the starting point)")

@@ -1,0 +1,73 @@
+"""`layerfit fit` end to end on a small synthetic capture: table, summary.json, loss plot."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from fit.config import load_render_config
+from fit.synth import synthesize
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_fit_command(tmp_path):
+    cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
+    camera = dataclasses.replace(cfg.scene.cameras[0], width=40, height=30)
+    synthesize(
+        dataclasses.replace(cfg.scene, cameras=(camera,)),
+        cfg.material,
+        tmp_path / "cap",
+        spp=256,
+        seed=4,
+    )
+    (tmp_path / "fit.toml").write_text(
+        'capture = "cap"\n'
+        '[material]\ntype = "glaze"\npigment = [0.4, 0.4, 0.4]\nroughness = 0.0625\nior = 1.52\n'
+        '[fit]\nfree = ["glaze.pigment"]\nsolver = "lm"\nlm_steps = 30\nlm_spp = 32\n'
+    )
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fit",
+            "fit",
+            str(tmp_path / "fit.toml"),
+            "--out",
+            str(tmp_path / "result"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=ROOT,
+        check=False,
+        env={**os.environ, "COLUMNS": "200"},
+    )
+    assert out.returncode == 0, out.stderr
+    assert "glaze.pigment" in out.stderr
+    summary = json.loads((tmp_path / "result" / "summary.json").read_text())
+    assert summary["truth"]["glaze.pigment"] == [0.1, 0.22, 0.55]
+    np.testing.assert_allclose(summary["values"]["glaze.pigment"], [0.1, 0.22, 0.55], atol=0.02)
+    assert summary["wall_time_s"] > 0 and len(summary["std"]["glaze.pigment"]) == 3
+    assert (tmp_path / "result" / "loss.png").stat().st_size > 1000
+
+
+def test_fit_command_bad_config(tmp_path):
+    (tmp_path / "fit.toml").write_text('capture = "nowhere"\n[material]\ntype = "glaze"\n')
+    out = subprocess.run(
+        [sys.executable, "-m", "fit", "fit", str(tmp_path / "fit.toml")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
+        check=False,
+        env={**os.environ, "COLUMNS": "200"},
+    )
+    assert out.returncode == 2
+    assert "fit.toml: capture = 'nowhere' does not exist" in out.stderr
