@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_run import run_cli
 
 from captures import CaptureError
 from captures.images import read_image, srgb_decode
@@ -33,18 +31,6 @@ def small_config(tmp_path: Path, **material) -> Path:
     return path
 
 
-def run(*args, cwd=ROOT):
-    return subprocess.run(
-        [sys.executable, "-m", "fit", *map(str, args)],
-        capture_output=True,
-        check=False,
-        text=True,
-        cwd=cwd,
-        timeout=600,
-        env={**os.environ, "COLUMNS": "200"},
-    )
-
-
 def test_bundled_config_loads():
     cfg = load_render_config(DEFAULT)
     assert cfg.material["type"] == "glaze" and cfg.material["roughness"] == 0.0625
@@ -52,7 +38,7 @@ def test_bundled_config_loads():
 
 
 def test_render_writes_exr_and_png(tmp_path):
-    out = run("render", small_config(tmp_path), "--out", tmp_path / "img.png")
+    out = run_cli("render", small_config(tmp_path), "--out", tmp_path / "img.png")
     assert out.returncode == 0, out.stderr
     exr, png = read_image(tmp_path / "img.exr"), read_image(tmp_path / "img.png")
     assert exr.shape == (48, 64, 3) and png.shape == (48, 64, 3)
@@ -95,7 +81,7 @@ def test_config_errors_name_file_and_key(tmp_path, edit, message):
 def test_cli_bad_config_writes_nothing(tmp_path):
     path = tmp_path / "bad.toml"
     path.write_text(DEFAULT.read_text().replace("ior = 1.52", "ior = 7"))
-    out = run("render", path, "--out", tmp_path / "img.png")
+    out = run_cli("render", path, "--out", tmp_path / "img.png")
     assert out.returncode == 2
     assert f"{path}: material: ior = 7" in out.stderr
     assert not list(tmp_path.glob("img*"))

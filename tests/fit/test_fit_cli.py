@@ -4,12 +4,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
+from cli_run import run_cli
 
 from fit.config import load_render_config
 from fit.synth import synthesize
@@ -32,23 +30,7 @@ def test_fit_command(tmp_path):
         '[material]\ntype = "glaze"\npigment = [0.4, 0.4, 0.4]\nroughness = 0.0625\nior = 1.52\n'
         '[fit]\nfree = ["glaze.pigment"]\nsolver = "lm"\nlm_steps = 30\nlm_spp = 32\n'
     )
-    out = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "fit",
-            "fit",
-            str(tmp_path / "fit.toml"),
-            "--out",
-            str(tmp_path / "result"),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=ROOT,
-        check=False,
-        env={**os.environ, "COLUMNS": "200"},
-    )
+    out = run_cli("fit", tmp_path / "fit.toml", "--out", tmp_path / "result")
     assert out.returncode == 0, out.stderr
     assert "glaze.pigment" in out.stderr
     summary = json.loads((tmp_path / "result" / "summary.json").read_text())
@@ -60,14 +42,6 @@ def test_fit_command(tmp_path):
 
 def test_fit_command_bad_config(tmp_path):
     (tmp_path / "fit.toml").write_text('capture = "nowhere"\n[material]\ntype = "glaze"\n')
-    out = subprocess.run(
-        [sys.executable, "-m", "fit", "fit", str(tmp_path / "fit.toml")],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        cwd=ROOT,
-        check=False,
-        env={**os.environ, "COLUMNS": "200"},
-    )
+    out = run_cli("fit", tmp_path / "fit.toml", timeout=300)
     assert out.returncode == 2
     assert "fit.toml: capture = 'nowhere' does not exist" in out.stderr

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_run import run_cli
 
 from captures.capture import load_capture
 from captures.images import read_image
@@ -128,23 +126,8 @@ def test_diligent_silhouette_and_shading_match(shared_data):
 
 
 def test_inspect_command(tmp_path, shared_data):
-    out = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "fit",
-            "inspect",
-            str(shared_data / "peer-cycles" / "sphere-blue" / "scene.json"),
-            "--sheet",
-            str(tmp_path / "sheet.png"),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=ROOT,
-        check=False,
-        env={**os.environ, "COLUMNS": "200"},
-    )
+    scene_json = shared_data / "peer-cycles" / "sphere-blue" / "scene.json"
+    out = run_cli("inspect", scene_json, "--sheet", tmp_path / "sheet.png")
     assert out.returncode == 0, out.stderr
     assert "view_00" in out.stderr and "0.99" in out.stderr
     assert (tmp_path / "sheet.png").stat().st_size > 10_000

@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import pytest
+from cli_run import run_cli
 
 from fit import variant
 from fit.variant import BackendError, ensure_llvm, find_libllvm, llvm_version
@@ -56,27 +57,21 @@ def test_explicit_old_llvm_is_refused(tmp_path, monkeypatch):
         ensure_llvm()
 
 
-def _run_without_llvm(tmp_path, args):
+def _old_llvm(tmp_path) -> dict:
+    """Environment pointing Dr.Jit at a (fake) libLLVM 15, which crashes it."""
     old = tmp_path / "libLLVM-15.so"
     old.touch()
-    env = {**os.environ, "DRJIT_LIBLLVM_PATH": str(old)}
-    return subprocess.run(
-        args, capture_output=True, text=True, check=False, env=env, cwd=ROOT, timeout=300
-    )
+    return {"DRJIT_LIBLLVM_PATH": str(old)}
 
 
 def test_cli_stops_with_one_line(tmp_path):
-    out = _run_without_llvm(
-        tmp_path,
-        [
-            sys.executable,
-            "-m",
-            "fit",
-            "render",
-            "configs/glazed-sphere.toml",
-            "--out",
-            str(tmp_path / "x.png"),
-        ],
+    out = run_cli(
+        "render",
+        "configs/glazed-sphere.toml",
+        "--out",
+        tmp_path / "x.png",
+        env=_old_llvm(tmp_path),
+        timeout=300,
     )
     assert out.returncode == 1
     lines = out.stderr.strip().splitlines()
@@ -85,9 +80,7 @@ def test_cli_stops_with_one_line(tmp_path):
 
 
 def test_tests_stop_with_one_line(tmp_path):
-    (tmp_path / "test_nothing.py").write_text("def test_x():\n    pass\n")
-    out = _run_without_llvm(
-        tmp_path,
+    out = subprocess.run(
         [
             sys.executable,
             "-m",
@@ -103,6 +96,12 @@ def test_tests_stop_with_one_line(tmp_path):
             os.path.join(ROOT, "tests"),
             os.path.join(ROOT, "tests", "fit", "test_variant.py::test_llvm_version"),
         ],
+        capture_output=True,
+        text=True,
+        check=False,
+        cwd=ROOT,
+        timeout=300,
+        env={**os.environ, **_old_llvm(tmp_path)},
     )
     assert out.returncode == 3, out.stdout + out.stderr
     assert "layerfit tests cannot run" in out.stdout + out.stderr
