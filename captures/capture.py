@@ -76,6 +76,31 @@ class Capture:
         lights = v.lights if v.lights is not None else self.scene.lights
         return replace(self.scene, cameras=(v.camera,), lights=lights)
 
+    def downscaled(self, factor: int) -> Capture:
+        """A copy area-averaged by an integer `factor` (weights become each block's valid share,
+        masks keep blocks more than half covered); the cameras follow (same field of view, fewer
+        pixels), so a render of the copy is the area average of a render of the original."""
+        if factor == 1:
+            return self
+        views, cameras = [], []
+        for view in self.views:
+            try:
+                image, weight = downscale(view.image, view.weight, factor)
+            except CaptureError as error:
+                raise CaptureError(f"{self.path}: view {view.name}: {error}") from None
+            mask = view.mask
+            if mask is not None:
+                h, w = mask.shape
+                block = downscale(mask[..., None].astype(np.float32), np.ones((h, w)), factor)[0]
+                mask = block[..., 0] > 0.5
+            camera = replace(
+                view.camera, width=view.camera.width // factor, height=view.camera.height // factor
+            )
+            views.append(replace(view, image=image, weight=weight, camera=camera, mask=mask))
+            cameras.append(camera)
+        scene = replace(self.scene, cameras=tuple(cameras[: len(self.scene.cameras)]))
+        return replace(self, scene=scene, views=views)
+
 
 def _inside(folder: Path, value, where: str, file: Path) -> Path:
     if not isinstance(value, str):
@@ -170,14 +195,6 @@ def load_capture(path: str | Path) -> Capture:
                 f"{image_path.name} is {w}x{h}"
             )
         cameras.append(camera)
-        image, weight = downscale(image, weight, factor)
-        if mask is not None and factor > 1:
-            mask = (
-                downscale(mask[..., None].astype(np.float32), np.ones((h, w), np.float32), factor)[
-                    0
-                ][..., 0]
-                > 0.5
-            )
         views.append(View(image_path.stem, image, weight, None, gain, mask=mask))  # camera below
         if weight.mean() == 0:
             raise CaptureError(f"{path}: views[{i}] ({image_path.name}) has no valid pixel")
@@ -186,11 +203,8 @@ def load_capture(path: str | Path) -> Capture:
     if "cameras" in scene_table:
         raise CaptureError(f"{path}: [scene] takes no cameras in a capture: each view has one")
     scene = parse_scene({**scene_table, "cameras": cameras}, path)
-    scaled = []
     for view, camera in zip(views, scene.cameras, strict=True):
-        view.camera = replace(camera, width=camera.width // factor, height=camera.height // factor)
-        scaled.append(view.camera)
-    scene = replace(scene, cameras=tuple(scaled))
+        view.camera = camera
     center, radius = bounding_sphere(scene.geometry)
     for i, camera in enumerate(scene.cameras):
         if not sees(camera, center, radius):
@@ -201,7 +215,7 @@ def load_capture(path: str | Path) -> Capture:
     truth = _truth(doc.get("truth", {}), path)
     for message in warnings:
         log.warning(message)
-    return Capture(scene, views, truth, path, warnings)
+    return Capture(scene, views, truth, path, warnings).downscaled(factor)
 
 
 def _truth(table, path: Path) -> dict:

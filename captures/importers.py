@@ -3,7 +3,6 @@ DiLiGenT photometric-stereo benchmark."""
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -104,14 +103,4 @@ def diligent_capture(folder: str | Path, downscale: int = 1) -> Capture:
         views.append(View(path.stem, image, weight, camera, 1.0, (light,), mask))
     if not views:
         raise CaptureError(f"{folder}: none of the images in filenames.txt is present")
-    capture = Capture(scene, views, {}, folder)
-    if downscale > 1:
-        from .weights import downscale as area
-
-        small = area(mask[..., None].astype(np.float32), np.ones((h, w), np.float32), downscale)
-        for view in capture.views:
-            view.image, view.weight = area(view.image, view.weight, downscale)
-            view.camera = replace(camera, width=w // downscale, height=h // downscale)
-            view.mask = small[0][..., 0] > 0.5
-        capture.scene = replace(scene, cameras=(capture.views[0].camera,))
-    return capture
+    return Capture(scene, views, {}, folder).downscaled(downscale)
