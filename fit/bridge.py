@@ -9,7 +9,8 @@ derivative modes (see ../shared/FACTS.md for what each supports):
   `render_forward` per parameter component) and the tangent is `J @ t` in JAX, so every transform
   works (jvp, jacfwd, grad, linearize); for least squares on few parameters (Levenberg-Marquardt).
 
-Values cross the boundary as float32; the seed is an int32 scalar under the caller's control.
+Values cross the boundary as float32; the seed is an int32 scalar under the caller's control; the
+sample counts are fixed per bridge (they are not traced: no recompiling when a phase changes them).
 """
 
 from __future__ import annotations
@@ -23,8 +24,11 @@ from .renderer import Renderer
 MODES = ("reverse", "jacobian")
 
 
-def make_render(renderer: Renderer, mode: str = "reverse"):
-    """`render(x: f32[P], seed: i32[]) -> f32[N]`, differentiable in `x` by `mode`."""
+def make_render(
+    renderer: Renderer, mode: str = "reverse", spp: int = 16, jacobian_spp: int | None = None
+):
+    """`render(x: f32[P], seed: i32[]) -> f32[N]` at `spp`, differentiable in `x` by `mode`
+    (`jacobian_spp`: see `Renderer.jacobian`)."""
     if mode not in MODES:
         raise ValueError(f"mode {mode!r}; choose one of {', '.join(MODES)}")
     out = jax.ShapeDtypeStruct((renderer.size,), jnp.float32)
@@ -32,13 +36,15 @@ def make_render(renderer: Renderer, mode: str = "reverse"):
     jac = jax.ShapeDtypeStruct((renderer.size, renderer.n_params), jnp.float32)
 
     def _render(x, seed):
-        return renderer.render(np.asarray(x, np.float32), int(seed))
+        return renderer.render(np.asarray(x, np.float32), int(seed), spp)
 
     def _vjp(x, seed, cotangent):
-        return renderer.vjp(np.asarray(x, np.float32), int(seed), np.asarray(cotangent, np.float32))
+        return renderer.vjp(
+            np.asarray(x, np.float32), int(seed), spp, np.asarray(cotangent, np.float32)
+        )
 
     def _jacobian(x, seed):
-        return renderer.jacobian(np.asarray(x, np.float32), int(seed))
+        return renderer.jacobian(np.asarray(x, np.float32), int(seed), spp, jacobian_spp)
 
     def call(x, seed):
         return jax.pure_callback(_render, out, x, seed, vmap_method="sequential")

@@ -260,12 +260,19 @@ def fit(
 
     out = out or Path("out") / config.stem
     with _progress() as bar:
-        task = bar.add_task("fit: Adam phase", total=cfg.adam_steps)
+        tasks = [
+            bar.add_task(
+                f"fit {k + 1}/{len(cfg.phases)}: {p.solver}, {p.spp} spp, 1/{p.downscale} res",
+                total=p.steps,
+            )
+            for k, p in enumerate(cfg.phases)
+        ]
         try:
-            summary = run_fit(cfg, out, lambda phase, n, total: bar.update(task, completed=n))
+            summary = run_fit(cfg, out, lambda k, n, loss: bar.update(tasks[k], completed=n))
         except (CaptureError, KeyError) as err:
             raise _fail(err, 2) from None
-    table = RichTable(title=f"{config}: {cfg.solver}, {summary['wall_time_s']:.1f} s")
+    solvers = "+".join(p.solver for p in cfg.phases)
+    table = RichTable(title=f"{config}: {solvers}, {summary['wall_time_s']:.1f} s")
     for column in ("parameter", "start", "fitted", "std", "known", "error"):
         table.add_column(column)
 

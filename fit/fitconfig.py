@@ -8,18 +8,25 @@ type = "glaze"
 fresnel = "exact"
 [fit]
 free = ["glaze.pigment", "glaze.roughness", "glaze.ior"]
-solver = "schedule"       # schedule (Adam, then LM) | lm | adam
 seed = 0
-adam_steps = 150
-adam_spp = 8
-adam_lr = 0.1
-lm_steps = 6
-lm_spp = 64
-polish_steps = 50         # Adam, fresh seeds, Polyak-averaged: removes LM's fixed-seed bias
-polish_spp = 32
-polish_lr = 0.01
 gains = false             # free RGB gain per view but the first (unknown exposure / white balance)
-downscale = 1             # area-average the photos (DiLiGenT folders, capture manifests)
+loss = "l2"               # l2 | huber | cauchy (robust: biased under Monte Carlo noise)
+loss_scale = 0.05         # robust losses: differences beyond this count less (default: 0.1 x mean)
+uncertainty_spp = 64      # the final Jacobian's samples per pixel
+downscale = 1             # area-average the photos before anything (DiLiGenT folders, manifests)
+
+[[fit.phases]]            # optional: the default schedule when absent (fit/solve.py)
+solver = "adam"           # adam | lm | bfgs
+steps = 100
+spp = 8
+downscale = 2             # this phase's resolution: the photos area-averaged by this factor
+lr = 0.1                  # adam: learning rate
+average = 0.0             # adam: fraction of the last iterates averaged (Polyak)
+[[fit.phases]]
+solver = "lm"
+steps = 5
+spp = 128
+jacobian_spp = 16         # lm: decorrelated Jacobian at this spp (absent: the residual's own)
 ```
 """
 
@@ -31,8 +38,7 @@ from pathlib import Path
 from captures.schema import Table, load_toml
 
 from .material import ConfigError, material_dict
-
-SOLVERS = ("schedule", "lm", "adam")
+from .solve import DEFAULT_SCHEDULE, LOSSES, SOLVERS, Phase
 
 
 @dataclass(frozen=True)
@@ -41,17 +47,12 @@ class FitConfig:
     capture: Path
     material: dict
     free: list[str]
-    solver: str
+    phases: tuple[Phase, ...]
     seed: int
-    adam_steps: int
-    adam_spp: int
-    adam_lr: float
-    lm_steps: int
-    lm_spp: int
-    polish_steps: int
-    polish_spp: int
-    polish_lr: float
     gains: bool
+    loss: str
+    loss_scale: float | None
+    uncertainty_spp: int
     downscale: int
 
 
@@ -71,38 +72,61 @@ def load_fit_config(path: str | Path) -> FitConfig:
         "fit",
         (
             "free",
-            "solver",
             "seed",
-            "adam_steps",
-            "adam_spp",
-            "adam_lr",
-            "lm_steps",
-            "lm_spp",
-            "polish_steps",
-            "polish_spp",
-            "polish_lr",
             "gains",
+            "loss",
+            "loss_scale",
+            "uncertainty_spp",
             "downscale",
+            "phases",
         ),
     )
     free = t._get("free", None, True)
     if not isinstance(free, list) or not free or not all(isinstance(k, str) for k in free):
         raise t.error("free", "must list parameter keys, e.g. ['glaze.roughness']")
+    phases = t._get("phases", None, False)
+    if phases is None:
+        phases = DEFAULT_SCHEDULE
+    elif not isinstance(phases, list) or not phases or not all(isinstance(x, dict) for x in phases):
+        raise t.error("phases", "must be one or more [[fit.phases]] tables")
+    else:
+        phases = tuple(
+            _phase(Table(item, path, f"fit.phases[{i}]", PHASE_KEYS))
+            for i, item in enumerate(phases)
+        )
     return FitConfig(
         path=path,
         capture=capture,
         material=material,
         free=free,
-        solver=t.string("solver", "schedule", SOLVERS),
+        phases=phases,
         seed=t.number("seed", int, 0, 0),
-        adam_steps=t.number("adam_steps", int, 150, 0),
-        adam_spp=t.number("adam_spp", int, 8, 1),
-        adam_lr=t.positive("adam_lr", 0.1),
-        lm_steps=t.number("lm_steps", int, 15, 0),
-        lm_spp=t.number("lm_spp", int, 64, 1),
-        polish_steps=t.number("polish_steps", int, 50, 0),
-        polish_spp=t.number("polish_spp", int, 32, 1),
-        polish_lr=t.positive("polish_lr", 0.01),
         gains=t.boolean("gains", False),
+        loss=t.string("loss", "l2", LOSSES),
+        loss_scale=t.positive("loss_scale", None, False),
+        uncertainty_spp=t.number("uncertainty_spp", int, 64, 1),
         downscale=t.number("downscale", int, 1, 1),
+    )
+
+
+PHASE_KEYS = ("solver", "steps", "spp", "downscale", "lr", "average", "jacobian_spp")
+
+
+def _phase(t: Table) -> Phase:
+    solver = t.string("solver", None, SOLVERS)
+    allowed = {"adam": ("lr", "average"), "lm": ("jacobian_spp",), "bfgs": ()}[solver]
+    for key in ("lr", "average", "jacobian_spp"):
+        if t.has(key) and key not in allowed:
+            raise t.error(key, f"does not apply to solver = {solver!r}")
+    average = t.number("average", float, 0.0, 0.0)
+    if average > 1:
+        raise t.error("average", f"= {average} is a fraction of the steps: use 0 to 1")
+    return Phase(
+        solver=solver,
+        steps=t.number("steps", int, None, 1),
+        spp=t.number("spp", int, None, 1),
+        downscale=t.number("downscale", int, 1, 1),
+        lr=t.positive("lr", 0.05),
+        average=average,
+        jacobian_spp=t.number("jacobian_spp", int, None, 1, False),
     )

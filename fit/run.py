@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections.abc import Callable
@@ -12,7 +13,7 @@ import numpy as np
 from .fitconfig import FitConfig
 from .free import Free, resolve
 from .inspect import open_capture
-from .solve import Problem, Result, adam, default_schedule, levenberg_marquardt, uncertainty
+from .solve import Problem, Result, run_schedule
 
 
 def start_values(material: dict, free: list[Free]) -> dict:
@@ -40,45 +41,16 @@ def start_values(material: dict, free: list[Free]) -> dict:
 
 
 def run_fit(
-    cfg: FitConfig, out: Path, progress: Callable[[str, int, int], None] | None = None
+    cfg: FitConfig, out: Path, progress: Callable[[int, int, float], None] | None = None
 ) -> dict:
-    """Fit, then write `summary.json` and `loss.png` into `out`; returns the summary."""
+    """Fit, then write `summary.json` and `loss.png` into `out`; returns the summary.
+    `progress(phase, step, loss)` as in `run_schedule`."""
     capture = open_capture(cfg.capture, cfg.downscale)
     free = resolve(cfg.material, cfg.free)
-    problem = Problem(capture, cfg.material, free, gains=cfg.gains)
+    problem = Problem(capture, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)
     start = start_values(cfg.material, free)
-
-    def adam_progress(step, loss):
-        if progress:
-            progress("adam", step, cfg.adam_steps)
-
     began = time.perf_counter()
-    if cfg.solver == "schedule":
-        result = default_schedule(
-            problem,
-            start,
-            cfg.seed,
-            adam_steps=cfg.adam_steps,
-            adam_lr=cfg.adam_lr,
-            adam_spp=cfg.adam_spp,
-            lm_spp=cfg.lm_spp,
-            lm_steps=cfg.lm_steps,
-            progress=adam_progress,
-            polish_steps=cfg.polish_steps,
-            polish_spp=cfg.polish_spp,
-            polish_lr=cfg.polish_lr,
-        )
-    else:
-        u0 = problem.unconstrained(start)
-        if cfg.solver == "lm":
-            result = levenberg_marquardt(problem, u0, cfg.lm_spp, cfg.seed, cfg.lm_steps)
-        else:
-            result = adam(
-                problem, u0, cfg.adam_steps, cfg.adam_spp, cfg.adam_lr, cfg.seed, adam_progress
-            )
-        result.std, result.correlation, result.poorly_determined = uncertainty(
-            problem, result.u, cfg.lm_spp, cfg.seed + 2
-        )
+    result = run_schedule(problem, start, cfg.phases, cfg.seed, progress, cfg.uncertainty_spp)
     wall = time.perf_counter() - began
     summary = _summary(cfg, capture.truth, start, result, wall)
     out.mkdir(parents=True, exist_ok=True)
@@ -97,7 +69,7 @@ def _summary(cfg: FitConfig, truth: dict, start: dict, result: Result, wall: flo
     return {
         "config": str(cfg.path),
         "capture": str(cfg.capture),
-        "solver": cfg.solver,
+        "phases": [dataclasses.asdict(p) for p in cfg.phases],
         "seed": cfg.seed,
         "start": start,
         "values": result.values,
@@ -120,7 +92,7 @@ def _plot(result: Result, path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(5, 3))
     ax.semilogy(np.arange(len(result.history)), result.history)
-    ax.set_xlabel("step (Adam, then the LM result)")
+    ax.set_xlabel("step (Adam steps; one point per LM/BFGS phase)")
     ax.set_ylabel("loss (weighted L2)")
     fig.tight_layout()
     fig.savefig(path, dpi=100)

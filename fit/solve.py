@@ -1,6 +1,6 @@
-"""Solvers on the bridge: Levenberg-Marquardt (explicit Jacobian, one shared seed), Adam (optax
-through `optimistix.OptaxMinimiser`, a fresh seed every step), the default schedule (Adam, a few LM
-steps, a Polyak-averaged Adam polish), and Gauss-Newton uncertainty from the final Jacobian."""
+"""Solvers on the bridge: Levenberg-Marquardt (explicit Jacobian), BFGS (reverse mode, one shared
+seed), Adam (optax through `optimistix.OptaxMinimiser`, a fresh seed every step), schedules of
+phases (solver, steps, spp, resolution), and Gauss-Newton uncertainty from the final Jacobian."""
 
 from __future__ import annotations
 
@@ -19,41 +19,73 @@ from .bridge import make_render
 from .free import Free, as_dict, to_physical, to_unconstrained
 from .renderer import Renderer
 
+LOSSES = ("l2", "huber", "cauchy")
+
 
 @dataclass
 class Problem:
     """What a fit compares: the capture's views against renders of `material` with `free`
-    parameters, weighted by the validity weights (L2). With `gains`, every view but the first
-    has a free RGB gain (photos rarely share an exact exposure or white balance; the first stays
-    fixed to remove the albedo/gain ambiguity), solved as its logarithm and reported as
-    `gain.<view>`."""
+    parameters, weighted by the validity weights.
+
+    With `gains`, every view but the first has a free RGB gain (photos rarely share an exact
+    exposure or white balance; the first stays fixed to remove the albedo/gain ambiguity), solved
+    as its logarithm and reported as `gain.<view>`.
+
+    `loss` shapes each pixel's difference d = render - photo before weighting: "l2" (d itself, the
+    default: unbiased under Monte Carlo noise), or robust ones that count differences beyond
+    `loss_scale` (default: a tenth of the photos' mean valid value) less, "huber" (linear tails)
+    and "cauchy" (logarithmic). Robust losses tame outliers (specks, unmodelled reflections) but
+    are biased under noise: they shrink the noisy render's large deviations asymmetrically."""
 
     capture: Capture
     material: dict
     free: list[Free]
     gains: bool = False
-    _renderers: dict = field(default_factory=dict, repr=False, compare=False)
+    loss: str = "l2"
+    loss_scale: float | None = None
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
-    def target(self) -> tuple[np.ndarray, np.ndarray]:
-        image = np.concatenate([v.image.ravel() for v in self.capture.views])
-        weight = np.concatenate([np.repeat(v.weight.ravel(), 3) for v in self.capture.views])
+    def __post_init__(self):
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss {self.loss!r}; choose one of {', '.join(LOSSES)}")
+
+    def at(self, downscale: int) -> Capture:
+        """The capture area-averaged by `downscale` (built once)."""
+        key = ("capture", downscale)
+        if key not in self._cache:
+            self._cache[key] = self.capture.downscaled(downscale)
+        return self._cache[key]
+
+    def target(self, downscale: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """(photos, sqrt of the normalised weights), flattened like the renders."""
+        views = self.at(downscale).views
+        image = np.concatenate([v.image.ravel() for v in views])
+        weight = np.concatenate([np.repeat(v.weight.ravel(), 3) for v in views])
         return image.astype(np.float32), np.sqrt(weight / max(weight.sum() / 3, 1.0)).astype(
             np.float32
         )
 
-    def renderer(self, spp: int) -> Renderer:
-        """The loaded scenes at `spp` (built once: phases at the same spp share kernels)."""
-        if spp not in self._renderers:
-            self._renderers[spp] = Renderer(self.capture, self.material, self.free, spp)
-        return self._renderers[spp]
+    def renderer(self, downscale: int = 1) -> Renderer:
+        """The loaded scenes at a resolution (built once: phases at the same resolution share
+        kernels, whatever their spp)."""
+        key = ("renderer", downscale)
+        if key not in self._cache:
+            self._cache[key] = Renderer(self.at(downscale), self.material, self.free)
+        return self._cache[key]
+
+    def scale(self) -> float:
+        if self.loss_scale is not None:
+            return self.loss_scale
+        image, sqrt_w = self.target()
+        return 0.1 * float(np.sum(image * sqrt_w**2) / max(np.sum(sqrt_w**2), 1e-12))
 
     @property
     def n_material(self) -> int:
         return sum(f.size for f in self.free)
 
     @property
-    def gain_views(self) -> list:
-        return self.capture.views[1:] if self.gains else []
+    def gain_views(self) -> list[int]:
+        return list(range(1, len(self.capture.views))) if self.gains else []
 
     def unconstrained(self, start: dict):
         """The solver's starting vector: material parameters, then log-gains (0: gain 1)."""
@@ -66,15 +98,16 @@ class Problem:
         out = as_dict(self.free, to_physical(self.free, u[: self.n_material]))
         for i, view in enumerate(self.gain_views):
             start = self.n_material + 3 * i
-            out[f"gain.{view.name}"] = np.exp(u[start : start + 3]).tolist()
+            out[f"gain.{self.capture.views[view].name}"] = np.exp(u[start : start + 3]).tolist()
         return out
 
-    def gain_multipliers(self, log_gains):
+    def gain_multipliers(self, log_gains, downscale: int = 1):
         """Per-element multipliers of the flattened views (the first view's are 1)."""
-        parts = [jnp.ones(self.capture.views[0].image.size, jnp.float32)]
+        views = self.at(downscale).views
+        parts = [jnp.ones(views[0].image.size, jnp.float32)]
         for i, view in enumerate(self.gain_views):
             gain = jnp.exp(log_gains[3 * i : 3 * i + 3]).astype(jnp.float32)
-            parts.append(jnp.tile(gain, view.image.size // 3))
+            parts.append(jnp.tile(gain, views[view].image.size // 3))
         return jnp.concatenate(parts)
 
 
@@ -90,18 +123,40 @@ class Result:
     poorly_determined: list[str] = field(default_factory=list)
 
 
-def _residuals(problem: Problem, renderer: Renderer, mode: str):
-    render = make_render(renderer, mode)
-    target, sqrt_w = (jnp.asarray(a) for a in problem.target())
-    n = problem.n_material
+def _shape(d, loss: str, scale: float):
+    """The loss as a residual transform psi(d) with psi^2 / 2 = rho(d): smooth, psi(d) ~ d near 0
+    (so least-squares solvers take robust losses too)."""
+    if loss == "l2":
+        return d
+    x = d / scale
+    x2 = x * x
+    if loss == "huber":  # rho = x^2/2 inside, |x| - 1/2 outside
+        safe = jnp.maximum(jnp.abs(x), 1.0)
+        return jnp.where(jnp.abs(x) <= 1.0, d, jnp.sign(d) * scale * jnp.sqrt(2 * safe - 1))
+    # cauchy: rho = log(1 + x^2) / 2; psi = x sqrt(log1p(x^2) / x^2), the ratio -> 1 at 0
+    ratio = jnp.where(x2 > 1e-6, jnp.log1p(x2) / jnp.maximum(x2, 1e-6), 1.0 - x2 / 2)
+    return d * jnp.sqrt(ratio)
+
+
+def _residuals(problem: Problem, render, downscale: int = 1):
+    """`residual(u, seed)`: the weighted, loss-shaped differences of `render(x, seed)` (a JAX
+    function of the physical values) from the photos."""
+    target, sqrt_w = (jnp.asarray(a) for a in problem.target(downscale))
+    n, loss, scale = problem.n_material, problem.loss, problem.scale()
 
     def residual(u, seed):
         image = render(to_physical(problem.free, u[:n], jnp), seed)
         if problem.gains:
-            image = image * problem.gain_multipliers(u[n:])
-        return sqrt_w * (image - target)
+            image = image * problem.gain_multipliers(u[n:], downscale)
+        return sqrt_w * _shape(image - target, loss, scale)
 
     return residual
+
+
+def _finite_or(u, fallback) -> np.ndarray:
+    """A solver's answer, or `fallback` when it is not finite (never apply a non-finite step)."""
+    u = np.asarray(u)
+    return u if np.all(np.isfinite(u)) else np.asarray(fallback)
 
 
 def levenberg_marquardt(
@@ -110,11 +165,18 @@ def levenberg_marquardt(
     spp: int = 32,
     seed: int = 0,
     max_steps: int = 30,
+    downscale: int = 1,
+    jacobian_spp: int | None = None,
     rtol: float = 1e-4,
     atol: float = 1e-6,
 ) -> Result:
-    """LM on the explicit Jacobian with one shared seed (common random numbers)."""
-    residual = _residuals(problem, problem.renderer(spp), "jacobian")
+    """LM (optimistix) on the explicit Jacobian with one seed. By default the Jacobian is this
+    seed's exact one (common random numbers: converges fast to the seed's own optimum, biased at
+    low spp); with `jacobian_spp` it is rendered decorrelated at that spp (see
+    `Renderer.jacobian`): the fixed point is unbiased and a cheap Jacobian serves an accurate,
+    high-spp residual."""
+    render = make_render(problem.renderer(downscale), "jacobian", spp, jacobian_spp)
+    residual = _residuals(problem, render, downscale)
     solution = optx.least_squares(
         residual,
         optx.LevenbergMarquardt(rtol=rtol, atol=atol),
@@ -123,9 +185,41 @@ def levenberg_marquardt(
         max_steps=max_steps,
         throw=False,
     )
-    u = np.asarray(solution.value)
+    u = _finite_or(solution.value, u0)
     r = np.asarray(residual(jnp.asarray(u), jnp.int32(seed)))
     return Result(problem.values(u), u, float(0.5 * r @ r), int(solution.stats["num_steps"]))
+
+
+def bfgs(
+    problem: Problem,
+    u0,
+    spp: int = 32,
+    seed: int = 0,
+    max_steps: int = 50,
+    downscale: int = 1,
+    rtol: float = 1e-5,
+    atol: float = 1e-7,
+) -> Result:
+    """BFGS (optimistix) on reverse-mode gradients with one shared seed (its line search needs a
+    fixed objective; fresh seeds stall it). Converges to that seed's optimum, like LM."""
+    render = make_render(problem.renderer(downscale), "reverse", spp)
+    residual = _residuals(problem, render, downscale)
+
+    def loss(u, seed):
+        r = residual(u, seed)
+        return 0.5 * jnp.dot(r, r)
+
+    solution = optx.minimise(
+        loss,
+        optx.BFGS(rtol=rtol, atol=atol),
+        jnp.asarray(u0, jnp.float32),
+        args=jnp.int32(seed),
+        max_steps=max_steps,
+        throw=False,
+    )
+    u = _finite_or(solution.value, u0)
+    value = float(loss(jnp.asarray(u), jnp.int32(seed)))
+    return Result(problem.values(u), u, value, int(solution.stats["num_steps"]))
 
 
 def adam(
@@ -136,13 +230,15 @@ def adam(
     lr: float = 0.05,
     seed: int = 0,
     progress: Callable[[int, float], None] | None = None,
-    average_last: int = 0,
+    average: float = 0.0,
+    downscale: int = 1,
 ) -> Result:
-    """Adam with a fresh seed every step (a fixed seed converges to its own biased optimum);
-    steps whose loss or gradient is not finite are rejected, never applied. With `average_last`
-    the result is the mean of the last iterates (Polyak averaging: it cancels the steps' Monte
-    Carlo noise)."""
-    residual = _residuals(problem, problem.renderer(spp), "reverse")
+    """Adam (optax through `optimistix.OptaxMinimiser`) with a fresh seed every step (a fixed seed
+    converges to its own biased optimum); steps whose loss or gradient is not finite are rejected,
+    never applied. With `average` > 0 the result is the mean of that fraction of the last iterates
+    (Polyak averaging: it cancels the steps' Monte Carlo noise)."""
+    render = make_render(problem.renderer(downscale), "reverse", spp)
+    residual = _residuals(problem, render, downscale)
 
     def loss(u, seed):
         r = residual(u, seed)
@@ -154,13 +250,14 @@ def adam(
     state = solver.init(loss, u, jnp.int32(seed), {}, f_struct, None, frozenset())
     step = jax.jit(lambda u, s, st: solver.step(loss, u, s, {}, st, frozenset())[:2])
     history, tail = [], []
+    first_averaged = steps - round(average * steps)
     for i in range(steps):
         new_u, new_state = step(u, jnp.int32(seed * 100003 + i + 1), state)
         value = float(new_state.f)  # the loss at `u`, before this update
         if np.all(np.isfinite(np.asarray(new_u))) and np.isfinite(value):
             u, state = new_u, new_state
         history.append(value)
-        if i >= steps - average_last:
+        if i >= first_averaged:
             tail.append(np.asarray(u))
         if progress:
             progress(i + 1, value)
@@ -171,18 +268,27 @@ def adam(
 
 
 def uncertainty(
-    problem: Problem, u, spp: int = 64, seed: int = 0, threshold: float = 0.1
+    problem: Problem,
+    u,
+    spp: int = 64,
+    seed: int = 0,
+    threshold: float = 0.1,
+    downscale: int = 1,
 ) -> tuple[dict, np.ndarray, list[str]]:
     """Gauss-Newton covariance `s^2 (J^T W J)^-1` at the solver's vector `u`, mapped to physical
     units through the transforms' derivatives (s^2 = weighted residual sum of squares / (N - P)).
     Returns per-parameter standard deviations, the correlation matrix, and the parameters whose
     standard deviation exceeds `threshold` of their range (of their value, for gains) or that are
     not determined at all."""
-    residual = _residuals(problem, problem.renderer(spp), "jacobian")
-    u = jnp.asarray(u, jnp.float32)
-    r = np.asarray(residual(u, jnp.int32(seed)), np.float64)
-    jac = np.asarray(jax.jacfwd(residual)(u, jnp.int32(seed)), np.float64)
     n = problem.n_material
+    u = jnp.asarray(u, jnp.float32)
+    x0 = to_physical(problem.free, u[:n], jnp)
+    image0, jac_x = problem.renderer(downscale).jacobian(np.asarray(x0), seed, spp)
+    # one Jacobian render; the residual's own Jacobian (gains, loss, weights) follows in JAX
+    # through the render's linearisation at `u`
+    residual = _residuals(problem, lambda x, _: image0 + jac_x @ (x - x0), downscale)
+    r = np.asarray(residual(u, 0), np.float64)
+    jac = np.asarray(jax.jacfwd(residual)(u, 0), np.float64)
     dxdu = np.concatenate(
         [
             np.diag(np.asarray(jax.jacfwd(lambda v: to_physical(problem.free, v, jnp))(u[:n]))),
@@ -210,43 +316,82 @@ def uncertainty(
     return std, corr, flagged
 
 
-def default_schedule(
+SOLVERS = ("adam", "lm", "bfgs")
+
+
+@dataclass(frozen=True)
+class Phase:
+    """One phase of a schedule: a solver, its steps, samples per pixel and resolution
+    (`downscale`: area-average the photos by this factor, the cameras follow).
+    Adam: `lr` and the averaged fraction of the last iterates (`average`); LM: the decorrelated
+    Jacobian's spp (`jacobian_spp`, None: the residual's own seed and spp)."""
+
+    solver: str
+    steps: int
+    spp: int
+    downscale: int = 1
+    lr: float = 0.05
+    average: float = 0.0
+    jacobian_spp: int | None = None
+
+    def __post_init__(self):
+        if self.solver not in SOLVERS:
+            raise ValueError(f"solver {self.solver!r}; choose one of {', '.join(SOLVERS)}")
+
+
+#: The default schedule (measured on the Cycles sphere, README "Fitting"): Adam with fresh seeds
+#: at half resolution and 8 spp is cheap and robust from far away (its scale-free steps also move
+#: a parameter started next to a bound, where the sigmoid is flat); then Adam at full resolution,
+#: 32 spp, a small rate, averaging the last half of the iterates (Polyak: the steps' Monte Carlo
+#: noise cancels). LM polishes measured worse there: with one seed it converges to that seed's
+#: biased optimum (alpha +7 % at 64 spp), with a decorrelated Jacobian to alpha +3 %.
+DEFAULT_SCHEDULE = (
+    Phase("adam", 100, 8, downscale=2, lr=0.1),
+    Phase("adam", 60, 32, lr=0.02, average=0.5),
+)
+
+
+def run_schedule(
     problem: Problem,
     start: dict,
+    phases: tuple[Phase, ...] | list[Phase] = DEFAULT_SCHEDULE,
     seed: int = 0,
-    adam_steps: int = 100,
-    adam_lr: float = 0.1,
-    adam_spp: int = 8,
-    lm_spp: int = 64,
-    lm_steps: int = 6,
-    progress: Callable[[int, float], None] | None = None,
-    polish_steps: int = 50,
-    polish_spp: int = 32,
-    polish_lr: float = 0.01,
+    progress: Callable[[int, int, float], None] | None = None,
+    uncertainty_spp: int = 64,
 ) -> Result:
-    """Three phases, then the uncertainty at the result:
-
-    1. Adam with fresh seeds at low spp: robust from far away (scale-free steps also move a
-       parameter started next to a bound, where its sigmoid is flat);
-    2. a few LM steps with one seed at higher spp: jumps to that seed's optimum;
-    3. Adam with fresh seeds, a small rate and Polyak averaging of the last 60 % of the iterates:
-       removes the fixed seed's bias (measured on the Cycles sphere: alpha +4-7 % after LM alone).
-    """
-    u0 = problem.unconstrained(start)
-    first = adam(problem, u0, adam_steps, adam_spp, adam_lr, seed=seed, progress=progress)
-    middle = levenberg_marquardt(problem, first.u, lm_spp, seed + 1, lm_steps)
-    result = adam(
-        problem,
-        middle.u,
-        polish_steps,
-        polish_spp,
-        polish_lr,
-        seed=seed + 2,
-        average_last=int(0.6 * polish_steps),
-    )
-    result.steps = first.steps + middle.steps + result.steps
-    result.history = [*first.history, middle.loss, *result.history]
+    """Run `phases` in turn from `start` (phase k uses seed + k), then the uncertainty at the
+    result. `progress(phase, step, loss)` after every Adam step and at the end of each phase."""
+    u = problem.unconstrained(start)
+    history, steps, result = [], 0, None
+    for k, phase in enumerate(phases):
+        report = (lambda i, value, k=k: progress(k, i, value)) if progress else None
+        common = {"spp": phase.spp, "seed": seed + k, "downscale": phase.downscale}
+        if phase.solver == "adam":
+            result = adam(
+                problem,
+                u,
+                phase.steps,
+                lr=phase.lr,
+                average=phase.average,
+                progress=report,
+                **common,
+            )
+            history += result.history
+        elif phase.solver == "lm":
+            result = levenberg_marquardt(
+                problem, u, max_steps=phase.steps, jacobian_spp=phase.jacobian_spp, **common
+            )
+            history.append(result.loss)
+        else:
+            result = bfgs(problem, u, max_steps=phase.steps, **common)
+            history.append(result.loss)
+        if progress:
+            progress(k, phase.steps, result.loss)
+        u, steps = result.u, steps + result.steps
+    if result is None:
+        result = Result(problem.values(u), u, float("nan"), 0)
+    result.steps, result.history = steps, history
     result.std, result.correlation, result.poorly_determined = uncertainty(
-        problem, result.u, lm_spp, seed + 3
+        problem, u, uncertainty_spp, seed + len(phases)
     )
     return result

@@ -28,14 +28,18 @@ def test_fit_command(tmp_path):
     (tmp_path / "fit.toml").write_text(
         'capture = "cap"\n'
         '[material]\ntype = "glaze"\npigment = [0.4, 0.4, 0.4]\nroughness = 0.0625\nior = 1.52\n'
-        '[fit]\nfree = ["glaze.pigment"]\nsolver = "lm"\nlm_steps = 30\nlm_spp = 32\n'
+        '[fit]\nfree = ["glaze.pigment"]\n'
+        '[[fit.phases]]\nsolver = "adam"\nsteps = 30\nspp = 8\ndownscale = 2\nlr = 0.1\n'
+        '[[fit.phases]]\nsolver = "bfgs"\nsteps = 10\nspp = 32\n'
     )
     out = run_cli("fit", tmp_path / "fit.toml", "--out", tmp_path / "result")
     assert out.returncode == 0, out.stderr
-    assert "glaze.pigment" in out.stderr
+    assert "glaze.pigment" in out.stderr and "adam+bfgs" in out.stderr
     summary = json.loads((tmp_path / "result" / "summary.json").read_text())
     assert summary["truth"]["glaze.pigment"] == [0.1, 0.22, 0.55]
     np.testing.assert_allclose(summary["values"]["glaze.pigment"], [0.1, 0.22, 0.55], atol=0.02)
+    assert [p["solver"] for p in summary["phases"]] == ["adam", "bfgs"]
+    assert len(summary["history"]) == 31  # the Adam steps, then the BFGS phase's final loss
     assert summary["wall_time_s"] > 0 and len(summary["std"]["glaze.pigment"]) == 3
     assert (tmp_path / "result" / "loss.png").stat().st_size > 1000
 

@@ -10,6 +10,7 @@ from captures import CaptureError
 from fit.fitconfig import load_fit_config
 from fit.free import resolve
 from fit.run import start_values
+from fit.solve import DEFAULT_SCHEDULE
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -25,17 +26,49 @@ def test_peer_config_loads(shared_data):
     }
 
 
+PHASES = """
+[[fit.phases]]
+solver = "adam"
+steps = 100
+spp = 8
+downscale = 2
+lr = 0.1
+[[fit.phases]]
+solver = "lm"
+steps = 5
+spp = 128
+jacobian_spp = 16
+"""
+
+
+def test_phases_load_and_default(tmp_path, shared_data):
+    text = (ROOT / "configs" / "peer-sphere.toml").read_text()
+    path = tmp_path / "fit.toml"
+    path.write_text(text.replace('"../../shared/data', f'"{shared_data}') + PHASES)
+    phases = load_fit_config(path).phases
+    assert [(p.solver, p.steps, p.spp, p.downscale) for p in phases] == [
+        ("adam", 100, 8, 2),
+        ("lm", 5, 128, 1),
+    ]
+    assert phases[0].lr == 0.1 and phases[1].jacobian_spp == 16
+    assert load_fit_config(ROOT / "configs" / "peer-sphere.toml").phases == DEFAULT_SCHEDULE
+
+
 @pytest.mark.parametrize(
     "edit, message",
     [
-        (('solver = "schedule"', 'solver = "newton"'), "fit.solver = 'newton'; choose one of"),
-        (("lm_spp = 64", "lm_spp = 0"), "fit.lm_spp = 0 must be >= 1"),
+        (('solver = "lm"', 'solver = "newton"'), "fit.phases[1].solver = 'newton'; choose one of"),
+        (("spp = 128", "spp = 0"), "fit.phases[1].spp = 0 must be >= 1"),
+        (("jacobian_spp = 16", "lr = 0.1"), "fit.phases[1].lr does not apply to solver = 'lm'"),
+        (("lr = 0.1", "average = 2"), "fit.phases[0].average = 2.0 is a fraction"),
+        (("steps = 5\n", ""), "[fit.phases[1]] needs 'steps'"),
         (("[fit]", "[fit]\nfree_params = 1"), "unknown key(s) free_params in [fit]"),
+        (("[fit]", '[fit]\nloss = "l1"'), "fit.loss = 'l1'; choose one of"),
         (('scene.json"', 'nothing.json"'), "nothing.json' does not exist"),
     ],
 )
 def test_fit_config_errors(tmp_path, shared_data, edit, message):
-    text = (ROOT / "configs" / "peer-sphere.toml").read_text()
+    text = (ROOT / "configs" / "peer-sphere.toml").read_text() + PHASES
     text = text.replace('"../../shared/data', f'"{shared_data}')  # the copy lives elsewhere
     assert edit[0] in text
     path = tmp_path / "broken.toml"
