@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from materials.params import (
+    EMITTER_PARAMS,
     GLAZE_OPTIONAL_PARAMS,
     GLAZE_PARAMS,
     LAYERED_PARAMS,
@@ -26,11 +27,18 @@ _PLUGIN_SPECS = {
 
 @dataclass(frozen=True)
 class Free:
-    """One free parameter: its design key (`glaze.roughness`), traverse key, declaration, size."""
+    """One free parameter: its design key (`glaze.roughness`), traverse key, declaration, size.
+    Emitter scales (`lights.scale`, `environment.scale`) have no single traverse key: they
+    multiply every matching emitter's configured radiance (see `Renderer`)."""
 
     key: str
-    traverse_key: str
+    traverse_key: str | None
     spec: ParamSpec
+
+    @property
+    def emitter(self) -> str | None:
+        """`lights` or `environment` for an emitter scale, else None."""
+        return self.key.split(".")[0] if self.traverse_key is None else None
 
     @property
     def size(self) -> int:
@@ -41,11 +49,17 @@ def resolve(material: dict, keys: list[str]) -> list[Free]:
     """The free parameters named by design keys in `material` (a Mitsuba BSDF dict).
 
     For a single plugin the key's first part is the plugin type (`glaze.ior`); for a stack it is the
-    layer name (`glaze.ior`, `lime.mask.threshold`) or `bump`.
+    layer name (`glaze.ior`, `lime.mask.threshold`) or `bump`. `lights.scale` and
+    `environment.scale` scale the scene's emitters.
     """
     out = []
     for key in keys:
         parts = key.split(".")
+        if parts[0] in EMITTER_PARAMS:
+            if parts[1:] != ["scale"]:
+                raise KeyError(f"{key}: emitters have one free parameter, {parts[0]}.scale")
+            out.append(Free(key, None, EMITTER_PARAMS[parts[0]]))
+            continue
         if material["type"] == "layered":
             if parts == ["bump"] and "bump" in material:
                 out.append(Free(key, MATERIAL_PREFIX + "bump", LAYERED_PARAMS["bump"]))

@@ -3,6 +3,8 @@ values, and its derivatives (reverse: a vector-Jacobian product; forward: the fu
 
 from __future__ import annotations
 
+import re
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -15,6 +17,34 @@ from .scene import scene_dict
 
 def _primal(scene, seed, spp: int):
     return mi.render(scene, spp=spp, seed=seed)
+
+
+#: Traverse keys of emitter radiance by scale: every light's, the environment's.
+_EMITTER_KEYS = {
+    "lights": re.compile(r"light_\d+\.(emitter\.radiance|intensity|irradiance)\.value"),
+    "environment": re.compile(r"environment\.(radiance\.value|data)"),
+}
+
+
+def _targets(f: Free, params, view: str) -> list[str]:
+    """The traverse keys `f` sets in one view's scene."""
+    if f.emitter is None:
+        keys = [f.traverse_key] if f.traverse_key in params else []
+    else:
+        keys = [k for k in params.keys() if _EMITTER_KEYS[f.emitter].fullmatch(k)]
+    if not keys:
+        raise KeyError(f"{f.key}: not in the scene of view {view} (nothing to fit)")
+    return keys
+
+
+def _like(current, values):
+    """`values` (numpy) as the Dr.Jit type of `current`."""
+    values = np.asarray(values, np.float32)
+    if isinstance(current, mi.TensorXf):
+        return mi.TensorXf(values.reshape(current.shape))
+    if values.size == 1:
+        return type(current)(float(values.reshape(-1)[0]))
+    return type(current)(*[float(x) for x in values.reshape(-1)])
 
 
 #: The reverse pass (`vjp`) uses the seed plus this offset. Paths shared between the primal image
@@ -44,11 +74,21 @@ class Renderer:
             for i in range(len(capture.views))
         ]
         self.params = [mi.traverse(s) for s in self.scenes]
-        for params in self.params:
-            missing = [f.traverse_key for f in free if f.traverse_key not in params]
-            if missing:
-                raise KeyError(f"not in the scene: {', '.join(missing)}")
-            params.keep([f.traverse_key for f in free])
+        # per view, per free parameter: the traverse keys it sets, and for emitter scales the
+        # configured values they multiply
+        self.targets, self.bases = [], []
+        for v, params in enumerate(self.params):
+            targets = [_targets(f, params, capture.views[v].name) for f in free]
+            self.targets.append(targets)
+            self.bases.append(
+                {
+                    k: np.asarray(params[k])
+                    for f, ks in zip(free, targets, strict=True)
+                    if f.emitter
+                    for k in ks
+                }
+            )
+            params.keep([k for ks in targets for k in ks])
         self.shapes = [(v.camera.height, v.camera.width, 3) for v in capture.views]
         self.size = int(sum(np.prod(s) for s in self.shapes))
         self.n_params = sum(f.size for f in free)
@@ -56,11 +96,10 @@ class Renderer:
         self._primal = [wrap(_primal) for _ in self.scenes]
         self._reverse = [wrap(self._reverse_pass) for _ in self.scenes]
 
-    def _reverse_pass(self, scene, grad_in, seed, spp: int) -> list:
-        """Gradients of `<grad_in, render>` for the free parameters (a frozen function's body:
-        Dr.Jit inputs only, the AD state set and cleared inside)."""
+    def _reverse_pass(self, scene, grad_in, seed, spp: int, keys: tuple) -> list:
+        """Gradients of `<grad_in, render>` with respect to the parameters at `keys` (a frozen
+        function's body: Dr.Jit inputs only, the AD state set and cleared inside)."""
         params = mi.traverse(scene)
-        keys = [f.traverse_key for f in self.free]
         for key in keys:
             dr.enable_grad(params[key])
         params.update()
@@ -70,22 +109,36 @@ class Renderer:
             dr.disable_grad(params[key])
         return grads
 
-    def _set(self, params, values: np.ndarray, grad: bool = False):
-        i = 0
-        for f in self.free:
-            chunk = [float(x) for x in values[i : i + f.size]]
-            current = params[f.traverse_key]
-            value = type(current)(*chunk) if f.size > 1 else type(current)(chunk[0])
-            if grad:
-                dr.enable_grad(value)
-            params[f.traverse_key] = value
+    def _set(self, v: int, values: np.ndarray, grad: bool = False) -> None:
+        """Set view `v`'s parameters from a flat physical vector (with `grad`, AD-enabled before
+        the update, so values the plugins derive in `parameters_changed` carry derivatives)."""
+        params, i = self.params[v], 0
+        for f, keys in zip(self.free, self.targets[v], strict=True):
+            chunk = values[i : i + f.size]
+            for key in keys:
+                current = params[key]
+                if f.emitter:
+                    value = _like(current, self.bases[v][key] * float(chunk[0]))
+                else:
+                    value = _like(current, chunk)
+                if grad:
+                    dr.enable_grad(value)
+                params[key] = value
             i += f.size
         params.update()
 
+    def _tangent(self, v: int, f: Free, key: str, component: int):
+        """d params[key] / d (component of f) at view v."""
+        if f.emitter:
+            return _like(self.params[v][key], self.bases[v][key])
+        tangent = np.zeros(f.size)
+        tangent[component] = 1.0
+        return _like(self.params[v][key], tangent)
+
     def render(self, values: np.ndarray, seed: int, spp: int) -> np.ndarray:
         out = []
-        for v, (scene, params) in enumerate(zip(self.scenes, self.params, strict=True)):
-            self._set(params, values)
+        for v, scene in enumerate(self.scenes):
+            self._set(v, values)
             image = self._primal[v](scene, mi.UInt32(int(seed) + 7919 * v), spp)
             out.append(np.asarray(image, dtype=np.float32)[..., :3].ravel())
         return np.concatenate(out)
@@ -94,17 +147,26 @@ class Renderer:
         """Gradient of `<cotangent, render(values)>` with respect to `values`."""
         grad = np.zeros(self.n_params, np.float32)
         offset = 0
-        for v, (scene, params) in enumerate(zip(self.scenes, self.params, strict=True)):
+        for v, scene in enumerate(self.scenes):
             n = int(np.prod(self.shapes[v]))
-            self._set(params, values)
+            self._set(v, values)
             grad_in = mi.TensorXf(
                 np.ascontiguousarray(
                     cotangent[offset : offset + n].reshape(self.shapes[v]), np.float32
                 )
             )
             seed_v = mi.UInt32(int(seed) + 7919 * v + GRAD_SEED_OFFSET)
-            grads = self._reverse[v](scene, grad_in, seed_v, spp)
-            grad += np.concatenate([np.ravel(g) for g in grads]).astype(np.float32)
+            keys = tuple(k for ks in self.targets[v] for k in ks)
+            grads = iter(self._reverse[v](scene, grad_in, seed_v, spp, keys))
+            i = 0
+            for f, ks in zip(self.free, self.targets[v], strict=True):
+                for key in ks:
+                    g = np.asarray(next(grads), np.float64)
+                    if f.emitter:  # d/ds of base * s
+                        grad[i] += float(np.sum(g.reshape(-1) * self.bases[v][key].reshape(-1)))
+                    else:
+                        grad[i : i + f.size] += np.ravel(g).astype(np.float32)
+                i += f.size
             offset += n
         return grad
 
@@ -124,21 +186,19 @@ class Renderer:
         )
         jac = np.zeros((self.size, self.n_params), np.float32)
         offset = 0
-        for v, (scene, params) in enumerate(zip(self.scenes, self.params, strict=True)):
+        for v, scene in enumerate(self.scenes):
             n = int(np.prod(self.shapes[v]))
-            column = 0
-            for f in self.free:
+            params, column = self.params[v], 0
+            for f, keys in zip(self.free, self.targets[v], strict=True):
                 for c in range(f.size):
-                    self._set(params, values, grad=True)
-                    x = params[f.traverse_key]
-                    tangent = [0.0] * f.size
-                    tangent[c] = 1.0
-                    dr.set_grad(x, type(x)(*tangent) if f.size > 1 else tangent[0])
+                    self._set(v, values, grad=True)
+                    for key in keys:
+                        dr.set_grad(params[key], self._tangent(v, f, key, c))
                     out = scene.integrator().render_forward(
                         scene, params, seed=int(j_seed) + 7919 * v, spp=j_spp
                     )
                     jac[offset : offset + n, column] = np.asarray(out, np.float32)[..., :3].ravel()
                     column += 1
-            self._set(params, values)
+            self._set(v, values)  # drop the AD state
             offset += n
         return image, jac

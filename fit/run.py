@@ -21,6 +21,9 @@ def start_values(material: dict, free: list[Free]) -> dict:
     material does not set it)."""
     out = {}
     for f in free:
+        if f.emitter:
+            out[f.key] = f.spec.default  # as configured
+            continue
         parts = f.key.split(".")
         if material["type"] == "layered":
             if parts == ["bump"]:

@@ -278,8 +278,8 @@ def uncertainty(
     """Gauss-Newton covariance `s^2 (J^T W J)^-1` at the solver's vector `u`, mapped to physical
     units through the transforms' derivatives (s^2 = weighted residual sum of squares / (N - P)).
     Returns per-parameter standard deviations, the correlation matrix, and the parameters whose
-    standard deviation exceeds `threshold` of their range (of their value, for gains) or that are
-    not determined at all."""
+    standard deviation exceeds `threshold` of their range (of their value, for gains and emitter
+    scales) or that are not determined at all."""
     n = problem.n_material
     u = jnp.asarray(u, jnp.float32)
     x0 = to_physical(problem.free, u[:n], jnp)
@@ -302,7 +302,11 @@ def uncertainty(
     corr = cov / np.maximum(np.outer(std_flat, std_flat), 1e-30)
     values = problem.values(np.asarray(u))
     std, flagged, i = {}, [], 0
-    scales = [f.spec.upper - f.spec.lower for f in problem.free]
+    # flagged against the range, or the value itself for scale factors (log-space bounds)
+    scales = [
+        None if f.spec.transform == "log_sigmoid" else f.spec.upper - f.spec.lower
+        for f in problem.free
+    ]
     sizes = [f.size for f in problem.free] + [3] * len(problem.gain_views)
     for key, size, scale in zip(
         values, sizes, scales + [None] * len(problem.gain_views), strict=True

@@ -12,7 +12,7 @@ from typing import Literal
 
 import numpy as np
 
-Transform = Literal["sigmoid", "identity"]
+Transform = Literal["sigmoid", "log_sigmoid", "identity"]
 Kind = Literal["float", "rgb"]
 
 #: A fit that starts at a bound starts this share of the range inside it (DESIGN.md).
@@ -28,7 +28,9 @@ class ParamSpec:
     - `key`: name inside its plugin (`roughness`); the full key is `<layer>.<key>`.
     - `default`: value used when a config does not set it (a float, or an RGB triple).
     - `lower`, `upper`: closed bounds, per channel for RGB values.
-    - `transform`: how solvers see the value unconstrained (`sigmoid` maps (lower, upper) to R).
+    - `transform`: how solvers see the value unconstrained (`sigmoid` maps (lower, upper) to R;
+      `log_sigmoid` does so in log space, for positive scale factors: a doubling and a halving
+      are equally far from 1).
     - `unit`: physical unit or `""`.
     - `doc`: one line for users.
     - `kind`: `float` (a scalar) or `rgb` (a texture whose constant value is an RGB triple).
@@ -48,6 +50,8 @@ class ParamSpec:
             raise ValueError(
                 f"ParamSpec {self.key}: lower {self.lower} must be < upper {self.upper}"
             )
+        if self.transform == "log_sigmoid" and self.lower <= 0:
+            raise ValueError(f"ParamSpec {self.key}: log_sigmoid needs lower > 0")
         values = np.atleast_1d(np.asarray(self.default, dtype=float))
         if np.any(values < self.lower) or np.any(values > self.upper):
             raise ValueError(f"ParamSpec {self.key}: default {self.default} is outside the bounds")
@@ -68,8 +72,11 @@ class ParamSpec:
         `BOUND_MARGIN` of the range inside it)."""
         if self.transform == "identity":
             return xp.asarray(value)
-        span = self.upper - self.lower
-        t = (xp.asarray(value) - self.lower) / span
+        if self.transform == "log_sigmoid":
+            low, high = np.log(self.lower), np.log(self.upper)
+            t = (xp.log(xp.asarray(value)) - low) / (high - low)
+        else:
+            t = (xp.asarray(value) - self.lower) / (self.upper - self.lower)
         t = xp.clip(t, BOUND_MARGIN, 1.0 - BOUND_MARGIN)
         return xp.log(t) - xp.log1p(-t)
 
@@ -77,6 +84,9 @@ class ParamSpec:
         """Inverse of `to_unconstrained`."""
         if self.transform == "identity":
             return xp.asarray(u)
+        if self.transform == "log_sigmoid":
+            low, high = np.log(self.lower), np.log(self.upper)
+            return xp.exp(low + (high - low) / (1.0 + xp.exp(-xp.asarray(u))))
         return self.lower + (self.upper - self.lower) / (1.0 + xp.exp(-xp.asarray(u)))
 
 
@@ -184,3 +194,15 @@ GLAZE_PARAMS = spec_table(PIGMENT, SIGMA, ROUGHNESS, IOR)
 GLAZE_OPTIONAL_PARAMS = spec_table(PIGMENT_NOISE, NORMAL_NOISE)
 MASK_PARAMS = spec_table(THRESHOLD, SOFTNESS)
 LAYERED_PARAMS = spec_table(BUMP)
+
+SCALE = ParamSpec(
+    "scale",
+    1.0,
+    0.1,
+    10.0,
+    "log_sigmoid",
+    "",
+    "multiplies the emitters' radiance as configured (lights are rarely calibrated)",
+)
+#: Scene-side fittable values: `lights.scale` (every light, one factor) and `environment.scale`.
+EMITTER_PARAMS = {"lights": SCALE, "environment": SCALE}

@@ -81,11 +81,11 @@ def test_bridge_gradient_equals_mitsubas_own(problem):
             np.asarray(jax.grad(lambda x, s, f=f: jnp.mean(f(x, s)))(jnp.asarray(x), jnp.int32(5)))
         )
     scene, params = renderer.scenes[0], renderer.params[0]
-    renderer._set(params, x, grad=True)
+    renderer._set(0, x, grad=True)
     image = mi.render(scene, params, spp=256, seed=5)
     dr.backward(dr.mean(image[..., :3]))
     own = np.concatenate([np.ravel(dr.grad(params[f.traverse_key])) for f in problem.free])
-    renderer._set(params, x)
+    renderer._set(0, x)  # drop the AD state
     for grad in grads:
         np.testing.assert_allclose(grad, own, rtol=0.1, atol=0.1 * np.abs(own).max())
 
