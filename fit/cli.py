@@ -279,20 +279,26 @@ def fit(
     def fmt(value):
         if value is None:
             return "-"
-        return ", ".join(f"{v:.4f}" for v in np.ravel(value))
+        value = np.ravel(value)
+        if value.size > 3:  # a texture
+            return f"{value.size} texels, mean {value.mean():.3f}, |max| {np.abs(value).max():.3f}"
+        return ", ".join(f"{v:.4f}" for v in value)
 
+    std = summary["std"] or {}
     for key, value in summary["values"].items():
         table.add_row(
             key,
             fmt(summary["start"].get(key)),
             fmt(value),
-            fmt(summary["std"][key]),
+            fmt(std.get(key)),
             fmt(summary["truth"].get(key)),
             fmt(summary["error"].get(key)),
         )
     console.print(table)
     if summary["poorly_determined"]:
         console.print(f"[yellow]poorly determined:[/] {', '.join(summary['poorly_determined'])}")
+    if summary["std"] is None:
+        console.print("no uncertainty: too many free components for a Jacobian (textures)")
     console.print(f"wrote {out / 'summary.json'} and {out / 'loss.png'}")
 
 

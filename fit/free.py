@@ -13,6 +13,7 @@ from materials.params import (
     GLAZE_PARAMS,
     LAYERED_PARAMS,
     MASK_PARAMS,
+    MASK_TEXTURE,
     OREN_NAYAR_PARAMS,
     ParamSpec,
 )
@@ -34,6 +35,7 @@ class Free:
     key: str
     traverse_key: str | None
     spec: ParamSpec
+    shape: tuple[int, ...] = ()  # a texture's texels (height, width, channels)
 
     @property
     def emitter(self) -> str | None:
@@ -42,6 +44,8 @@ class Free:
 
     @property
     def size(self) -> int:
+        if self.shape:
+            return int(np.prod(self.shape))
         return 3 if self.spec.kind == "rgb" else 1
 
 
@@ -67,6 +71,14 @@ def resolve(material: dict, keys: list[str]) -> list[Free]:
             layer = material.get(parts[0]) if parts[0] in material["layers"].split(",") else None
             if layer is None:
                 raise KeyError(f"{key}: no layer {parts[0]!r} (or it is not built)")
+            if parts[1:] == ["mask", "texture"]:
+                texture = material.get(f"{parts[0]}_mask", {}).get("texture")
+                if texture is None:
+                    raise KeyError(f"{key}: the {parts[0]} mask has no texture to fit")
+                shape = texture_data(texture).shape
+                traverse_key = f"{MATERIAL_PREFIX}{key}.data"
+                out.append(Free(key, traverse_key, MASK_TEXTURE, shape))
+                continue
             if len(parts) == 3 and parts[1] == "mask" and parts[2] in MASK_PARAMS:
                 out.append(Free(key, MATERIAL_PREFIX + key, MASK_PARAMS[parts[2]]))
                 continue
@@ -83,6 +95,13 @@ def resolve(material: dict, keys: list[str]) -> list[Free]:
             Free(key, MATERIAL_PREFIX + tkey + (".value" if spec.kind == "rgb" else ""), spec)
         )
     return out
+
+
+def texture_data(texture: dict) -> np.ndarray:
+    """A bitmap texture's texels as Mitsuba holds them (height, width, channels)."""
+    import mitsuba as mi
+
+    return np.asarray(mi.traverse(mi.load_dict(texture))["data"], dtype=np.float32)
 
 
 def to_unconstrained(free: list[Free], values: dict, xp=np):

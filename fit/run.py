@@ -10,8 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
+from captures.images import write_image
+
 from .fitconfig import FitConfig
-from .free import Free, resolve
+from .free import Free, resolve, texture_data
 from .inspect import open_capture
 from .solve import Problem, Result, run_schedule
 
@@ -23,6 +25,10 @@ def start_values(material: dict, free: list[Free]) -> dict:
     for f in free:
         if f.emitter:
             out[f.key] = f.spec.default  # as configured
+            continue
+        if f.shape:  # a mask's texture: its texels as painted
+            texture = material[f.key.split(".")[0] + "_mask"]["texture"]
+            out[f.key] = texture_data(texture).ravel().tolist()
             continue
         parts = f.key.split(".")
         if material["type"] == "layered":
@@ -61,6 +67,10 @@ def run_fit(
     partial.write_text(json.dumps(summary, indent=2))
     partial.replace(out / "summary.json")
     _plot(result, out / "loss.png")
+    for f in free:
+        if f.shape:  # fitted textures as images next to the summary
+            texels = np.asarray(result.values[f.key], np.float32).reshape(f.shape)
+            write_image(out / f"{f.key}.exr", texels)
     return summary
 
 

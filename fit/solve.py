@@ -355,6 +355,11 @@ DEFAULT_SCHEDULE = (
 )
 
 
+#: The uncertainty renders one forward-mode image per parameter component: skipped above this
+#: many (textures), where the Jacobian would cost more than the fit.
+MAX_UNCERTAINTY_PARAMS = 64
+
+
 def run_schedule(
     problem: Problem,
     start: dict,
@@ -364,7 +369,8 @@ def run_schedule(
     uncertainty_spp: int = 64,
 ) -> Result:
     """Run `phases` in turn from `start` (phase k uses seed + k), then the uncertainty at the
-    result. `progress(phase, step, loss)` after every Adam step and at the end of each phase."""
+    result (up to `MAX_UNCERTAINTY_PARAMS` components). `progress(phase, step, loss)` after
+    every Adam step and at the end of each phase."""
     u = problem.unconstrained(start)
     history, steps, result = [], 0, None
     for k, phase in enumerate(phases):
@@ -395,7 +401,8 @@ def run_schedule(
     if result is None:
         result = Result(problem.values(u), u, float("nan"), 0)
     result.steps, result.history = steps, history
-    result.std, result.correlation, result.poorly_determined = uncertainty(
-        problem, u, uncertainty_spp, seed + len(phases)
-    )
+    if len(u) <= MAX_UNCERTAINTY_PARAMS:
+        result.std, result.correlation, result.poorly_determined = uncertainty(
+            problem, u, uncertainty_spp, seed + len(phases)
+        )
     return result

@@ -60,6 +60,8 @@ class FbmMask(mi.Texture):
         callback.put("softness", self.softness, mi.ParamFlags.Differentiable)
         if self.texture is not None:
             callback.put("texture", self.texture, mi.ParamFlags.Differentiable)
+        if self.texture is not None:
+            callback.put("texture", self.texture, mi.ParamFlags.Differentiable)
 
     def parameters_changed(self, keys):
         dr.make_opaque(self.threshold, self.softness)

@@ -13,7 +13,7 @@ from typing import Literal
 import numpy as np
 
 Transform = Literal["sigmoid", "log_sigmoid", "identity"]
-Kind = Literal["float", "rgb"]
+Kind = Literal["float", "rgb", "texture"]
 
 #: A fit that starts at a bound starts this share of the range inside it (DESIGN.md).
 BOUND_MARGIN = 1e-3
@@ -33,7 +33,8 @@ class ParamSpec:
       are equally far from 1).
     - `unit`: physical unit or `""`.
     - `doc`: one line for users.
-    - `kind`: `float` (a scalar) or `rgb` (a texture whose constant value is an RGB triple).
+    - `kind`: `float` (a scalar), `rgb` (a texture whose constant value is an RGB triple) or
+      `texture` (a bitmap's texels, each bounded like a float).
     """
 
     key: str
@@ -177,6 +178,16 @@ SOFTNESS = ParamSpec(
     "sigmoid",
     "",
     "width of a mask's edge in fbm units (sigmoid scale)",
+)
+MASK_TEXTURE = ParamSpec(
+    "texture",
+    1.0,
+    0.0,
+    1.0,
+    "sigmoid",
+    "",
+    "a mask's painted texture (linear texels; fitted texel by texel)",
+    kind="texture",
 )
 BUMP = ParamSpec(
     "bump",

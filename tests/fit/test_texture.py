@@ -1,0 +1,83 @@
+"""Recovering a 16x16 painted mask texel by texel in reverse mode (a two-layer sphere)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+
+from captures.capture import Capture, View
+from captures.images import write_image
+from captures.scene import Camera
+from fit.config import load_render_config
+from fit.free import resolve
+from fit.material import material_dict
+from fit.render import render
+from fit.scene import scene_dict
+from fit.solve import Phase, Problem, run_schedule
+
+ROOT = Path(__file__).resolve().parents[2]
+SIZE = 16
+ANGLES = [0, 120, 240]  # cameras around the sphere (degrees)
+
+
+def truth_texture() -> np.ndarray:
+    """Blocks of 4x4 texels, alternately mostly glaze and mostly clay."""
+    rows, cols = np.indices((SIZE, SIZE)) // 4
+    return np.where((rows + cols) % 2 == 0, 0.9, 0.1).astype(np.float32)[..., None]
+
+
+def material(texture: Path) -> dict:
+    """Clay under a blue glaze whose mask is the texture (threshold 0: the fbm factor is ~1)."""
+    table = {
+        "type": "layered",
+        "layers": [
+            {"name": "clay", "type": "oren_nayar", "reflectance": [0.8, 0.75, 0.7]},
+            {
+                "name": "glaze",
+                "type": "glaze",
+                "pigment": [0.1, 0.22, 0.55],
+                "mask": {"texture": str(texture), "threshold": 0.0, "softness": 0.005},
+            },
+        ],
+    }
+    return material_dict(table, texture.parent / "material.toml")
+
+
+def capture(tmp_path: Path) -> Capture:
+    """Three views of the sphere with the true mask (and a brighter sky to see it by)."""
+    write_image(tmp_path / "truth.exr", truth_texture())
+    truth = material(tmp_path / "truth.exr")
+    cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
+    cameras = tuple(
+        Camera((5 * np.sin(a), -5 * np.cos(a), 0.5), (0, 0, 0), (0, 0, 1), 30.0, 48, 36)
+        for a in np.radians(ANGLES)
+    )
+    scene = dataclasses.replace(cfg.scene, cameras=cameras, environment=(0.5, 0.5, 0.5))
+    views = []
+    for i, camera in enumerate(cameras):
+        image = render(mi.load_dict(scene_dict(scene, truth, i, 256)), 256, seed=7 + i)
+        views.append(View(f"v{i}", image, np.ones((36, 48), np.float32), camera))
+    return Capture(scene, views)
+
+
+def test_mask_texture_is_recovered_in_reverse_mode(tmp_path):
+    """From a uniform 0.5 start, 50 Adam steps (8 spp, fresh seeds) recover the 4x4-block
+    pattern in the band the cameras see face-on (rows 4-11, within 45 degrees of the equator;
+    measured mean error 0.04); the poles, seen at grazing angles or not at all, stay uncertain."""
+    target = capture(tmp_path)
+    write_image(tmp_path / "start.exr", np.full((SIZE, SIZE, 1), 0.5, np.float32))
+    start_material = material(tmp_path / "start.exr")
+    free = resolve(start_material, ["glaze.mask.texture"])
+    assert free[0].shape == (SIZE, SIZE, 1) and free[0].size == SIZE * SIZE
+    problem = Problem(target, start_material, free)
+    start = {"glaze.mask.texture": np.full(SIZE * SIZE, 0.5).tolist()}
+    result = run_schedule(problem, start, (Phase("adam", 50, 8, lr=0.2),), seed=0)
+    fitted = np.asarray(result.values["glaze.mask.texture"]).reshape(SIZE, SIZE)
+    truth = truth_texture()[..., 0]
+    band = slice(4, 12)
+    assert np.abs(fitted[band] - truth[band]).mean() < 0.08
+    assert np.corrcoef(fitted[band].ravel(), truth[band].ravel())[0, 1] > 0.9
+    assert result.std is None  # 256 components: no Jacobian-based uncertainty
