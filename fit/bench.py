@@ -171,3 +171,81 @@ def cup_speed_table(spp: int = 64, repeats: int = 5, size: int = 256, progress=N
             machine(),
         ],
     )
+
+
+def fit_schedules() -> dict:
+    """Named schedules compared by `fit_trade_table`: the default, cheaper and dearer variants,
+    the plain Adam loop of ../shared/FACTS.md, and the LM and BFGS polishes."""
+    from .schedule import DEFAULT_SCHEDULE, Phase
+
+    first = DEFAULT_SCHEDULE[0]
+    return {
+        "default": DEFAULT_SCHEDULE,
+        "default, half the steps": (
+            dataclasses.replace(first, steps=50),
+            Phase("adam", 30, 32, lr=0.02, average=0.5),
+        ),
+        "default, full resolution throughout": (
+            dataclasses.replace(first, downscale=1),
+            *DEFAULT_SCHEDULE[1:],
+        ),
+        "plain Adam: 200 x 16 spp + 100 x 64 spp": (
+            Phase("adam", 200, 16, lr=0.05),
+            Phase("adam", 100, 64, lr=0.01, average=0.5),
+        ),
+        "Adam, then LM (shared seed, 64 spp)": (first, Phase("lm", 6, 64)),
+        "Adam, then LM (128 spp, decorrelated 16-spp Jacobian)": (
+            first,
+            Phase("lm", 6, 128, jacobian_spp=16),
+        ),
+        "Adam, then BFGS (shared seed, 64 spp)": (first, Phase("bfgs", 20, 64)),
+    }
+
+
+def fit_trade_table(config: Path, names: list[str] | None = None, progress=None) -> Table:
+    """Wall time and error against the known values of each schedule on one fit config (its
+    capture must carry the truth): the speed/accuracy trade of the solver, spp, resolution and
+    step choices. Each schedule starts from the config's material with the config's seed."""
+    from .fitconfig import load_fit_config
+    from .free import resolve
+    from .inspect import open_capture
+    from .run import start_values
+    from .solve import Problem, run_schedule
+
+    cfg = load_fit_config(config)
+    capture = open_capture(cfg.capture, cfg.downscale)
+    free = resolve(cfg.material, cfg.free)
+    start = start_values(cfg.material, free)
+    missing = [f.key for f in free if f.key not in capture.truth]
+    if missing:
+        raise ValueError(f"{config}: the capture has no known value for {', '.join(missing)}")
+    schedules = fit_schedules()
+    names = names or list(schedules)
+    task = progress.add_task("bench: fit schedules", total=len(names)) if progress else None
+    rows, walls = [], {}
+    for name in names:
+        problem = Problem(capture, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)
+        began = time.perf_counter()
+        result = run_schedule(problem, start, schedules[name], cfg.seed, None, cfg.uncertainty_spp)
+        walls[name] = time.perf_counter() - began
+        row = [name, f"{walls[name]:.0f}"]
+        for f in free:
+            error = np.abs(np.asarray(result.values[f.key]) - np.asarray(capture.truth[f.key]))
+            relative = error / np.abs(np.asarray(capture.truth[f.key]))
+            row.append(f"{error.max():.4f} ({100 * relative.max():.1f} %)")
+        rows.append(row)
+        if progress:
+            progress.advance(task)
+    reference = walls.get("default", next(iter(walls.values())))
+    for row, name in zip(rows, names, strict=True):
+        row.insert(2, f"{walls[name] / reference:.2f}")
+    return Table(
+        title=f"Fit schedules on {config.name}: wall time and max error vs the known values",
+        columns=["schedule", "wall s", "time / default", *(f"{f.key} |err|" for f in free)],
+        rows=rows,
+        notes=[
+            "wall time includes kernel compilation and the final uncertainty (64 spp Jacobian)",
+            "schedules run one after another in one process, from the config's start and seed",
+            machine(),
+        ],
+    )

@@ -100,15 +100,21 @@ def render(
 def bench(
     spp: Annotated[int, typer.Option(help="Samples per pixel of each timed render.")] = 64,
     repeats: Annotated[int, typer.Option(help="Timed renders per case (median reported).")] = 7,
-    only: Annotated[str | None, typer.Option(help="Run one table: bsdf or cup.")] = None,
+    only: Annotated[
+        str | None, typer.Option(help="Run one table: bsdf, cup or fit (not run by default).")
+    ] = None,
+    fit_config: Annotated[
+        Path, typer.Option(help="--only fit: the fit config whose schedules are compared.")
+    ] = Path("configs/peer-sphere.toml"),
     out: Annotated[Path | None, typer.Option(help="Also write the tables (Markdown) here.")] = None,
     variant: VariantOption = None,
 ) -> None:
-    """Speed tables: our BSDFs vs Mitsuba's built-ins, and the cup's stack vs its layers."""
-    if only not in (None, "bsdf", "cup"):
-        raise _fail(ValueError(f"--only {only!r}: choose bsdf or cup"), 2)
+    """Speed tables: our BSDFs vs Mitsuba's built-ins, the cup's stack vs its layers, and (with
+    --only fit, minutes) fit schedules' wall time vs accuracy."""
+    if only not in (None, "bsdf", "cup", "fit"):
+        raise _fail(ValueError(f"--only {only!r}: choose bsdf, cup or fit"), 2)
     _start(variant)
-    from .bench import bsdf_speed_table, cup_speed_table
+    from .bench import bsdf_speed_table, cup_speed_table, fit_trade_table
 
     tables = []
     with _progress() as bar:
@@ -116,6 +122,13 @@ def bench(
             tables.append(bsdf_speed_table(spp=spp, repeats=repeats, progress=bar))
         if only in (None, "cup"):
             tables.append(cup_speed_table(spp=spp, repeats=repeats, progress=bar))
+        if only == "fit":
+            from captures import CaptureError
+
+            try:
+                tables.append(fit_trade_table(fit_config, progress=bar))
+            except (CaptureError, ValueError) as err:
+                raise _fail(err, 2) from None
     for table in tables:
         console.print(table.rich())
     if out is not None:
@@ -299,7 +312,7 @@ def fit(
         console.print(f"[yellow]poorly determined:[/] {', '.join(summary['poorly_determined'])}")
     if summary["std"] is None:
         console.print("no uncertainty: too many free components for a Jacobian (textures)")
-    console.print(f"wrote {out / 'summary.json'} and {out / 'loss.png'}")
+    console.print(f"wrote {out / 'summary.json'}, loss.png and fit.png (photo | fit | difference)")
 
 
 def main() -> None:

@@ -15,7 +15,7 @@ loss_scale = 0.05         # robust losses: differences beyond this count less (d
 uncertainty_spp = 64      # the final Jacobian's samples per pixel
 downscale = 1             # area-average the photos before anything (DiLiGenT folders, manifests)
 
-[[fit.phases]]            # optional: the default schedule when absent (fit/solve.py)
+[[fit.phases]]            # optional: the default schedule when absent (fit/schedule.py)
 solver = "adam"           # adam | lm | bfgs
 steps = 100
 spp = 8
@@ -38,7 +38,7 @@ from pathlib import Path
 from captures.schema import Table, load_toml
 
 from .material import ConfigError, material_dict
-from .solve import DEFAULT_SCHEDULE, LOSSES, SOLVERS, Phase
+from .schedule import DEFAULT_SCHEDULE, LOSSES, SOLVERS, Phase
 
 
 @dataclass(frozen=True)

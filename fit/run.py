@@ -15,6 +15,7 @@ from captures.images import write_image
 from .fitconfig import FitConfig
 from .free import Free, resolve, texture_data
 from .inspect import open_capture
+from .report import comparison_sheet
 from .solve import Problem, Result, run_schedule
 
 
@@ -52,7 +53,8 @@ def start_values(material: dict, free: list[Free]) -> dict:
 def run_fit(
     cfg: FitConfig, out: Path, progress: Callable[[int, int, float], None] | None = None
 ) -> dict:
-    """Fit, then write `summary.json` and `loss.png` into `out`; returns the summary.
+    """Fit, then write `summary.json`, `loss.png` and `fit.png` (photos, fitted renders and their
+    differences) into `out`; returns the summary.
     `progress(phase, step, loss)` as in `run_schedule`."""
     capture = open_capture(cfg.capture, cfg.downscale)
     free = resolve(cfg.material, cfg.free)
@@ -67,6 +69,7 @@ def run_fit(
     partial.write_text(json.dumps(summary, indent=2))
     partial.replace(out / "summary.json")
     _plot(result, out / "loss.png")
+    comparison_sheet(problem, result.u, out / "fit.png", seed=cfg.seed + 7)
     for f in free:
         if f.shape:  # fitted textures as images next to the summary
             texels = np.asarray(result.values[f.key], np.float32).reshape(f.shape)

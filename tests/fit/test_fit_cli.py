@@ -42,6 +42,7 @@ def test_fit_command(tmp_path):
     assert len(summary["history"]) == 31  # the Adam steps, then the BFGS phase's final loss
     assert summary["wall_time_s"] > 0 and len(summary["std"]["glaze.pigment"]) == 3
     assert (tmp_path / "result" / "loss.png").stat().st_size > 1000
+    assert (tmp_path / "result" / "fit.png").stat().st_size > 1000
 
 
 def test_fit_command_bad_config(tmp_path):

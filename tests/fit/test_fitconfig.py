@@ -10,7 +10,7 @@ from captures import CaptureError
 from fit.fitconfig import load_fit_config
 from fit.free import resolve
 from fit.run import start_values
-from fit.solve import DEFAULT_SCHEDULE
+from fit.schedule import DEFAULT_SCHEDULE
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -16,7 +16,8 @@ from fit.config import load_render_config
 from fit.free import resolve
 from fit.render import render
 from fit.scene import scene_dict
-from fit.solve import Phase, Problem, _shape, levenberg_marquardt, run_schedule
+from fit.schedule import Phase
+from fit.solve import Problem, _shape, levenberg_marquardt, run_schedule
 from materials.params import BOUND_MARGIN, SCALE
 
 ROOT = Path(__file__).resolve().parents[2]

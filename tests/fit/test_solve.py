@@ -19,7 +19,8 @@ from fit.free import resolve, to_physical, to_unconstrained
 from fit.render import render
 from fit.renderer import GRAD_SEED_OFFSET, Renderer
 from fit.scene import scene_dict
-from fit.solve import Phase, Problem, levenberg_marquardt, run_schedule, uncertainty
+from fit.schedule import Phase
+from fit.solve import Problem, levenberg_marquardt, run_schedule, uncertainty
 
 ROOT = Path(__file__).resolve().parents[2]
 KEYS = ["glaze.pigment", "glaze.roughness", "glaze.ior"]

@@ -16,7 +16,8 @@ from fit.free import resolve
 from fit.material import material_dict
 from fit.render import render
 from fit.scene import scene_dict
-from fit.solve import Phase, Problem, run_schedule
+from fit.schedule import Phase
+from fit.solve import Problem, run_schedule
 
 ROOT = Path(__file__).resolve().parents[2]
 SIZE = 16
