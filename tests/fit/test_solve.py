@@ -20,7 +20,7 @@ from fit.render import render
 from fit.renderer import GRAD_SEED_OFFSET, Renderer
 from fit.scene import scene_dict
 from fit.schedule import Phase
-from fit.solve import Problem, levenberg_marquardt, run_schedule, uncertainty
+from fit.solve import Problem, adam, bfgs, levenberg_marquardt, run_schedule, uncertainty
 
 ROOT = Path(__file__).resolve().parents[2]
 KEYS = ["glaze.pigment", "glaze.roughness", "glaze.ior"]
@@ -224,3 +224,24 @@ def test_per_view_gains_are_recovered():
     np.testing.assert_allclose(result.values["glaze.pigment"], TRUTH["glaze.pigment"], atol=0.02)
     std, corr, _ = uncertainty(problem, result.u, spp=32, seed=2)
     assert len(std["gain.v1"]) == 3 and corr.shape == (6, 6)
+
+
+def test_non_finite_steps_are_rejected(problem, monkeypatch):
+    """Adam skips a step whose loss or gradient is not finite (and goes on with the next seed);
+    LM and BFGS that end non-finite return their start: nothing non-finite is ever applied."""
+    renderer = problem.renderer()
+    real, calls = renderer.render, {"n": 0}
+
+    def every_third_is_nan(values, seed, spp):
+        calls["n"] += 1
+        return real(values, seed, spp) * (np.nan if calls["n"] % 3 == 0 else 1.0)
+
+    monkeypatch.setattr(renderer, "render", every_third_is_nan)
+    start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.2, "glaze.ior": 1.3}
+    u0 = problem.unconstrained(start)
+    result = adam(problem, u0, 9, 4, 0.1, seed=0)
+    assert np.isnan(result.history).sum() == 3
+    assert np.all(np.isfinite(result.u)) and not np.array_equal(result.u, u0)
+    monkeypatch.setattr(renderer, "render", lambda v, s, spp: real(v, s, spp) * np.nan)
+    for solver in (levenberg_marquardt, bfgs):
+        np.testing.assert_array_equal(solver(problem, u0, spp=4, max_steps=3).u, u0)
