@@ -231,7 +231,7 @@ def fit_trade_table(config: Path, names: list[str] | None = None, progress=None)
         row = [name, f"{walls[name]:.0f}"]
         for f in free:
             error = np.abs(np.asarray(result.values[f.key]) - np.asarray(capture.truth[f.key]))
-            relative = error / np.abs(np.asarray(capture.truth[f.key]))
+            relative = error / np.maximum(np.abs(np.asarray(capture.truth[f.key])), 1e-12)
             row.append(f"{error.max():.4f} ({100 * relative.max():.1f} %)")
         rows.append(row)
         if progress:

@@ -7,7 +7,8 @@ capture = "../../shared/data/peer-cycles/sphere-blue/scene.json"  # or a capture
 type = "glaze"
 fresnel = "exact"
 [fit]
-free = ["glaze.pigment", "glaze.roughness", "glaze.ior"]
+free = ["glaze.pigment", "glaze.roughness", "glaze.ior"]  # declared keys; also lights.scale,
+                          # environment.scale, <layer>.mask.texture (texel by texel), bump, ...
 seed = 0
 gains = false             # free RGB gain per view but the first (unknown exposure / white balance)
 loss = "l2"               # l2 | huber | cauchy (robust: biased under Monte Carlo noise)

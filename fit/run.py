@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from captures import CaptureError
 from captures.images import write_image
 
 from .fitconfig import FitConfig
@@ -60,6 +61,11 @@ def run_fit(
     free = resolve(cfg.material, cfg.free)
     problem = Problem(capture, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)
     start = start_values(cfg.material, free)
+    for k, phase in enumerate(cfg.phases):  # fail before any work, naming the phase
+        try:
+            problem.at(phase.downscale)
+        except CaptureError as err:
+            raise CaptureError(f"{cfg.path}: fit.phases[{k}].downscale: {err}") from None
     began = time.perf_counter()
     result = run_schedule(problem, start, cfg.phases, cfg.seed, progress, cfg.uncertainty_spp)
     wall = time.perf_counter() - began

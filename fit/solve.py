@@ -72,7 +72,8 @@ class Problem:
             self._cache[key] = Renderer(self.at(downscale), self.material, self.free)
         return self._cache[key]
 
-    def scale(self) -> float:
+    def robust_scale(self) -> float:
+        """The width of a robust loss, in linear image units."""
         if self.loss_scale is not None:
             return self.loss_scale
         image, sqrt_w = self.target()
@@ -141,7 +142,7 @@ def _residuals(problem: Problem, render, downscale: int = 1):
     """`residual(u, seed)`: the weighted, loss-shaped differences of `render(x, seed)` (a JAX
     function of the physical values) from the photos."""
     target, sqrt_w = (jnp.asarray(a) for a in problem.target(downscale))
-    n, loss, scale = problem.n_material, problem.loss, problem.scale()
+    n, loss, scale = problem.n_material, problem.loss, problem.robust_scale()
 
     def residual(u, seed):
         image = render(to_physical(problem.free, u[:n], jnp), seed)

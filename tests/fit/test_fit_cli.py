@@ -50,3 +50,20 @@ def test_fit_command_bad_config(tmp_path):
     out = run_cli("fit", tmp_path / "fit.toml", timeout=300)
     assert out.returncode == 2
     assert "fit.toml: capture = 'nowhere' does not exist" in out.stderr
+
+
+def test_fit_command_bad_phase_resolution(tmp_path):
+    """A phase whose downscale does not divide the photos fails before any work, naming it."""
+    cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
+    camera = dataclasses.replace(cfg.scene.cameras[0], width=40, height=30)
+    scene = dataclasses.replace(cfg.scene, cameras=(camera,))
+    synthesize(scene, cfg.material, tmp_path / "cap", spp=4, seed=4)
+    (tmp_path / "fit.toml").write_text(
+        'capture = "cap"\n[material]\ntype = "glaze"\n[fit]\nfree = ["glaze.ior"]\n'
+        '[[fit.phases]]\nsolver = "adam"\nsteps = 10\nspp = 8\ndownscale = 3\n'
+    )
+    out = run_cli("fit", tmp_path / "fit.toml", "--out", tmp_path / "result", timeout=300)
+    assert out.returncode == 2
+    assert "fit.toml: fit.phases[0].downscale:" in out.stderr
+    assert "does not divide the image size 40x30" in out.stderr
+    assert not (tmp_path / "result").exists()

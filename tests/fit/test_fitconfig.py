@@ -76,3 +76,24 @@ def test_fit_config_errors(tmp_path, shared_data, edit, message):
     with pytest.raises(CaptureError) as err:
         load_fit_config(path)
     assert message in str(err.value) and "broken.toml" in str(err.value)
+
+
+def test_default_job_configs(tmp_path):
+    """scripts/run.sh's configs: the 3-view scene replaces the glazed sphere's for `synth`, and
+    the fit config loads against the capture it makes (rendered here at 1 spp)."""
+    from captures import parse_scene
+    from captures.schema import load_toml
+    from fit.config import load_render_config
+    from fit.synth import synthesize
+
+    cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
+    views = ROOT / "configs" / "glazed-sphere-views.toml"
+    scene = parse_scene(load_toml(views, "file")["scene"], views)  # as `synth --scene` does
+    assert [(c.width, c.height) for c in scene.cameras] == [(160, 120)] * 3
+    synthesize(scene, cfg.material, tmp_path / "out" / "glazed-sphere-capture", spp=1)
+    text = (ROOT / "configs" / "glazed-sphere-fit.toml").read_text()
+    (tmp_path / "configs").mkdir()
+    (tmp_path / "configs" / "fit.toml").write_text(text)
+    fit = load_fit_config(tmp_path / "configs" / "fit.toml")
+    assert fit.phases == DEFAULT_SCHEDULE
+    assert [f.key for f in resolve(fit.material, fit.free)] == fit.free
