@@ -27,14 +27,25 @@ KEYS = ["glaze.pigment", "glaze.roughness", "glaze.ior"]
 TRUTH = {"glaze.pigment": [0.1, 0.22, 0.55], "glaze.roughness": 0.0625, "glaze.ior": 1.52}
 
 
-@pytest.fixture(scope="module")
-def problem():
+def sphere_problem(width: int, height: int) -> Problem:
     cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
-    camera = dataclasses.replace(cfg.scene.cameras[0], width=48, height=36)
+    camera = dataclasses.replace(cfg.scene.cameras[0], width=width, height=height)
     scene = dataclasses.replace(cfg.scene, cameras=(camera,))
     target = render(mi.load_dict(scene_dict(scene, cfg.material, 0, 256)), 512, seed=99)
-    capture = Capture(scene, [View("v", target, np.ones((36, 48), np.float32), camera)])
+    capture = Capture(scene, [View("v", target, np.ones((height, width), np.float32), camera)])
     return Problem(capture, cfg.material, resolve(cfg.material, KEYS))
+
+
+@pytest.fixture(scope="module")
+def problem():
+    return sphere_problem(48, 36)
+
+
+@pytest.fixture(scope="module")
+def larger():
+    """At 48x36 the highlight spans a few pixels and short Adam schedules land alpha anywhere
+    from +6 % to -32 % by seed (measured, seeds 0-3); at 96x72 within -2 to -7 %."""
+    return sphere_problem(96, 72)
 
 
 def truth_vector():
@@ -128,18 +139,24 @@ def test_levenberg_marquardt_recovers_the_sphere(problem):
     check(result.values)
 
 
-#: The default schedule's shape at this size: Adam at half resolution, then an averaged polish.
+#: The default schedule's shape at this size: Adam at half resolution, then an averaged polish
+#: (longer at fewer spp: one view leaves alpha and ior a long, noisy valley).
 SCHEDULE = (
     Phase("adam", 80, 8, downscale=2, lr=0.1),
-    Phase("adam", 30, 32, lr=0.02, average=0.5),
+    Phase("adam", 120, 16, lr=0.03, average=0.5),
 )
 
 
-def test_schedule_recovers_and_reports_uncertainty(problem):
+def test_schedule_recovers_and_reports_uncertainty(larger):
+    """Recovered, with standard deviations that cover the actual errors (the sandwich form:
+    the plain Gauss-Newton one was 10-20x too small where Monte Carlo noise gathers)."""
+    problem = larger
     start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.2, "glaze.ior": 1.3}
     result = run_schedule(problem, start, SCHEDULE, seed=0)
     check(result.values)
     assert all(np.all(np.asarray(s) > 0) for s in result.std.values())
+    for key in ("glaze.roughness", "glaze.ior"):  # measured at seeds 0-3: within 2.9 sigma
+        assert abs(result.values[key] - TRUTH[key]) < 4 * result.std[key]
     assert result.correlation.shape == (5, 5)
     np.testing.assert_allclose(np.diag(result.correlation), 1.0, rtol=1e-4)
     again = run_schedule(problem, start, SCHEDULE, seed=0)
@@ -153,8 +170,13 @@ def test_schedule_from_a_bound(problem):
     """ior started at its lower bound (inside by the 1e-3 margin, where its sigmoid is flat): the
     scale-free Adam phase moves it (it needs ~60 steps of lr 0.1 to cross the flat part: 40
     left ior at 1.13). LM gets there too, creeping: 51 steps with tight tolerances (it stops at
-    ior 1.14 after 30). (Measured: a start at alpha = 1 with ior = 3 is a genuine local minimum
-    on this target: alpha wants to grow.)"""
+    ior 1.14 after 30).
+
+    Measured, not asserted: from this start a valley where a sharper, dimmer highlight (low
+    alpha, low ior) trades against the truth holds a local minimum. The Cycles sphere ends there
+    with the default schedule (alpha -18 %, ior -0.04; its loss 2.2x the truth's at 1024 spp), and
+    so do seeds 0 and 2 of the 96x72 sphere; an LM phase at half resolution does not escape it.
+    A start at alpha = 1 with ior = 3 is another local minimum (alpha wants to grow)."""
     start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.2, "glaze.ior": 1.01}
     check(run_schedule(problem, start, SCHEDULE, seed=0).values)
     u0 = problem.unconstrained(start)
