@@ -179,6 +179,12 @@ def test_schedule_from_a_bound(problem):
     A start at alpha = 1 with ior = 3 is another local minimum (alpha wants to grow)."""
     start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.2, "glaze.ior": 1.01}
     check(run_schedule(problem, start, SCHEDULE, seed=0).values)
+
+
+@pytest.mark.slow
+def test_levenberg_marquardt_from_a_bound(problem):
+    """LM alone from ior's lower bound: it creeps off the flat end of the sigmoid (51 steps)."""
+    start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.2, "glaze.ior": 1.01}
     u0 = problem.unconstrained(start)
     lm = levenberg_marquardt(problem, u0, spp=32, seed=1, max_steps=80, rtol=1e-7, atol=1e-9)
     check(lm.values)
