@@ -12,6 +12,7 @@ from captures.capture import Capture, load_capture
 from captures.images import srgb_encode
 from captures.importers import diligent_capture, peer_capture
 
+from .figures import pyplot, save_figure
 from .render import render
 from .scene import coverage_dict
 
@@ -63,11 +64,7 @@ def contact_sheet(
 ) -> Path:
     """Rows: views; columns: the image (sRGB, exposed to its 99th percentile), its validity
     weight, and the rendered silhouette over the image (with IoU when the object is known)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     views = capture.views[:max_views]
     cols = 3 if coverage is not None else 2
     fig, axes = plt.subplots(
@@ -95,12 +92,4 @@ def contact_sheet(
         for ax in axes[i]:
             ax.axis("off")
     fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    partial = out.with_name(f".{out.name}.partial.png")
-    try:
-        fig.savefig(partial, dpi=110)
-        partial.replace(out)  # whole or not at all
-    finally:
-        plt.close(fig)
-        partial.unlink(missing_ok=True)
-    return out
+    return save_figure(fig, out)

@@ -8,6 +8,7 @@ import numpy as np
 
 from captures.images import srgb_encode
 
+from .figures import pyplot, save_figure
 from .free import to_physical
 from .solve import Problem
 
@@ -18,11 +19,7 @@ def comparison_sheet(
     """Rows: views (up to `max_views`); columns: the photo and the fitted render (sRGB, one
     exposure per view: the photo's 99th percentile), and the weighted difference
     (render - photo) / exposure in a diverging map. Written whole or not at all."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     u = np.asarray(u, np.float32)
     x = np.asarray(to_physical(problem.free, u[: problem.n_material]), np.float32)
     flat = problem.renderer().render(x, seed, spp)
@@ -51,12 +48,4 @@ def comparison_sheet(
         for ax in axes[i]:
             ax.axis("off")
     fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    partial = out.with_name(f".{out.name}.partial.png")
-    try:
-        fig.savefig(partial, dpi=110)
-        partial.replace(out)
-    finally:
-        plt.close(fig)
-        partial.unlink(missing_ok=True)
-    return out
+    return save_figure(fig, out)

@@ -13,6 +13,7 @@ import numpy as np
 from captures import CaptureError
 from captures.images import write_image
 
+from .figures import pyplot, save_figure
 from .fitconfig import FitConfig
 from .free import Free, resolve, texture_data
 from .inspect import open_capture
@@ -107,15 +108,10 @@ def _summary(cfg: FitConfig, truth: dict, start: dict, result: Result, wall: flo
 
 
 def _plot(result: Result, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(5, 3))
     ax.semilogy(np.arange(len(result.history)), result.history)
     ax.set_xlabel("step (Adam steps; one point per LM/BFGS phase)")
-    ax.set_ylabel("loss (weighted L2)")
+    ax.set_ylabel("loss (weighted)")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)

@@ -76,23 +76,27 @@ def test_wrong_lobe_width_is_caught(peer):
     assert abs(ratio - 1) < 0.02 and rel.mean() > PIXEL_TOL, (ratio, rel.mean())
 
 
-def test_peer_sphere_is_recovered(shared_data):
-    """configs/peer-sphere.toml with the default schedule (exact Fresnel, as Cycles): issue 5's
-    targets are alpha within 2 %, ior within 0.02, pigment within 0.01 per channel (measured:
-    +0.2 %, +0.0009, 0.0003 in about 70 s on 2 cores)."""
+def fit_peer(config: str):
+    """(result, truth) of a bundled peer-sphere fit config with its schedule."""
     from fit.fitconfig import load_fit_config
     from fit.free import resolve
     from fit.inspect import open_capture
     from fit.run import start_values
     from fit.solve import Problem, run_schedule
 
-    cfg = load_fit_config(ROOT / "configs" / "peer-sphere.toml")
+    cfg = load_fit_config(ROOT / "configs" / config)
     capture = open_capture(cfg.capture)
     free = resolve(cfg.material, cfg.free)
-    result = run_schedule(
-        Problem(capture, cfg.material, free), start_values(cfg.material, free), cfg.phases
-    )
-    truth, values = capture.truth, result.values
+    start = start_values(cfg.material, free)
+    return run_schedule(Problem(capture, cfg.material, free), start, cfg.phases), capture.truth
+
+
+def test_peer_sphere_is_recovered(shared_data):
+    """configs/peer-sphere.toml with the default schedule (exact Fresnel, as Cycles): issue 5's
+    targets are alpha within 2 %, ior within 0.02, pigment within 0.01 per channel (measured:
+    +0.2 %, +0.0009, 0.0003 in about 70 s on 2 cores)."""
+    result, truth = fit_peer("peer-sphere.toml")
+    values = result.values
     np.testing.assert_allclose(values["glaze.pigment"], truth["glaze.pigment"], atol=0.01)
     assert values["glaze.roughness"] == pytest.approx(truth["glaze.roughness"], rel=0.02)
     assert values["glaze.ior"] == pytest.approx(truth["glaze.ior"], abs=0.02)
@@ -103,19 +107,8 @@ def test_peer_sphere_is_recovered(shared_data):
 def test_peer_sphere_with_schlick(shared_data):
     """configs/peer-sphere-schlick.toml: the model mismatch with Cycles' exact Fresnel shows in
     ior (measured +0.020, alpha -2.5 %, pigment within 0.002)."""
-    from fit.fitconfig import load_fit_config
-    from fit.free import resolve
-    from fit.inspect import open_capture
-    from fit.run import start_values
-    from fit.solve import Problem, run_schedule
-
-    cfg = load_fit_config(ROOT / "configs" / "peer-sphere-schlick.toml")
-    capture = open_capture(cfg.capture)
-    free = resolve(cfg.material, cfg.free)
-    result = run_schedule(
-        Problem(capture, cfg.material, free), start_values(cfg.material, free), cfg.phases
-    )
-    truth, values = capture.truth, result.values
+    result, truth = fit_peer("peer-sphere-schlick.toml")
+    values = result.values
     np.testing.assert_allclose(values["glaze.pigment"], truth["glaze.pigment"], atol=0.005)
     assert values["glaze.roughness"] == pytest.approx(truth["glaze.roughness"], rel=0.05)
     assert 0.0 < values["glaze.ior"] - truth["glaze.ior"] < 0.035
