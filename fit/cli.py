@@ -286,7 +286,8 @@ def fit(
             raise _fail(err, 2) from None
     solvers = "+".join(p.solver for p in cfg.phases)
     table = RichTable(title=f"{config}: {solvers}, {summary['wall_time_s']:.1f} s")
-    for column in ("parameter", "start", "fitted", "std", "known", "error"):
+    table.add_column("parameter", no_wrap=True)
+    for column in ("start", "fitted", "std", "known", "error"):
         table.add_column(column)
 
     def fmt(value):

@@ -75,7 +75,7 @@ def run_fit(
     partial = out / ".summary.json.partial"
     partial.write_text(json.dumps(summary, indent=2))
     partial.replace(out / "summary.json")
-    _plot(result, out / "loss.png")
+    _plot(result, cfg.phases, out / "loss.png")
     comparison_sheet(problem, result.u, out / "fit.png", seed=cfg.seed + 7)
     for f in free:
         if f.shape:  # fitted textures as images next to the summary
@@ -107,11 +107,19 @@ def _summary(cfg: FitConfig, truth: dict, start: dict, result: Result, wall: flo
     }
 
 
-def _plot(result: Result, path: Path) -> None:
+def _plot(result: Result, phases, path: Path) -> None:
+    """The loss per step, one colour per phase (phases at another resolution or loss scale are
+    not comparable in level; LM and BFGS phases show their final loss as one point)."""
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(5, 3))
-    ax.semilogy(np.arange(len(result.history)), result.history)
-    ax.set_xlabel("step (Adam steps; one point per LM/BFGS phase)")
-    ax.set_ylabel("loss (weighted)")
+    fig, ax = plt.subplots(figsize=(6, 3.2))
+    begin = 0
+    for k, (phase, end) in enumerate(zip(phases, result.phase_ends, strict=True)):
+        steps = np.arange(begin, end)
+        label = f"{k + 1}: {phase.solver}, {phase.spp} spp, 1/{phase.downscale} res"
+        ax.semilogy(steps, result.history[begin:end], "o" if end - begin == 1 else "-", label=label)
+        begin = end
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss (weighted, at each phase's resolution)")
+    ax.legend(fontsize=7)
     fig.tight_layout()
     save_figure(fig, path, dpi=100)

@@ -121,6 +121,7 @@ class Result:
     std: dict | None = None
     correlation: np.ndarray | None = None
     poorly_determined: list[str] = field(default_factory=list)
+    phase_ends: list[int] = field(default_factory=list)  # len(history) after each phase
 
 
 def _shape(d, loss: str, scale: float):
@@ -346,7 +347,7 @@ def run_schedule(
     result (up to `MAX_UNCERTAINTY_PARAMS` components). `progress(phase, step, loss)` after
     every Adam step and at the end of each phase."""
     u = problem.unconstrained(start)
-    history, steps, result = [], 0, None
+    history, steps, result, ends = [], 0, None, []
     for k, phase in enumerate(phases):
         report = (lambda i, value, k=k: progress(k, i, value)) if progress else None
         common = {"spp": phase.spp, "seed": seed + k, "downscale": phase.downscale}
@@ -372,9 +373,10 @@ def run_schedule(
         if progress:
             progress(k, phase.steps, result.loss)
         u, steps = result.u, steps + result.steps
+        ends.append(len(history))
     if result is None:
         result = Result(problem.values(u), u, float("nan"), 0)
-    result.steps, result.history = steps, history
+    result.steps, result.history, result.phase_ends = steps, history, ends
     if len(u) <= MAX_UNCERTAINTY_PARAMS:
         result.std, result.correlation, result.poorly_determined = uncertainty(
             problem, u, uncertainty_spp, seed + len(phases)
