@@ -119,7 +119,8 @@ def _plot(result: Result, phases, path: Path) -> None:
         ax.semilogy(steps, result.history[begin:end], "o" if end - begin == 1 else "-", label=label)
         begin = end
     ax.set_xlabel("step")
-    ax.set_ylabel("loss (weighted, at each phase's resolution)")
+    ax.set_ylabel("loss (weighted)")
+    ax.set_title("per phase at its own resolution and spp", fontsize=8)
     ax.legend(fontsize=7)
     fig.tight_layout()
     save_figure(fig, path, dpi=100)
