@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import OpenImageIO as oiio
 
 from .errors import CaptureError
+from .files import atomic_path
 
 log = logging.getLogger(__name__)
 ENCODINGS = ("linear", "srgb", "raw")
@@ -60,25 +59,15 @@ def write_image(path: str | Path, linear: np.ndarray) -> Path:
         raise CaptureError(
             f"{path}: unsupported image type {suffix!r}; use .exr, .png, .tif or .jpg"
         )
-    path.parent.mkdir(parents=True, exist_ok=True)
     spec = oiio.ImageSpec(data.shape[1], data.shape[0], data.shape[2], fmt)
-    fd, tmp = tempfile.mkstemp(suffix=suffix, dir=path.parent)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 is for secrets, not images
-    try:
-        out = oiio.ImageOutput.create(tmp)
-        if out is None or not out.open(tmp, spec):
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None or not out.open(str(tmp), spec):
             raise CaptureError(f"{path}: cannot write ({oiio.geterror()})")
         ok = out.write_image(data)
         out.close()
         if not ok:
             raise CaptureError(f"{path}: cannot write ({out.geterror()})")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
 
 
