@@ -28,17 +28,31 @@ fov_x_deg = 39.6
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Annotated, Any, Literal
 
 import numpy as np
+from pydantic import AfterValidator, Field, ValidationInfo, model_validator
 
 from .errors import CaptureError
 from .images import ENCODINGS, read_linear, read_mask
+from .model import (
+    ExistingPath,
+    FieldError,
+    FiniteFloat,
+    NonNegativeInt,
+    PositiveFloat,
+    PositiveInt,
+    PositiveVec3,
+    StrictModel,
+    by_shape,
+    config_folder,
+    parse_model,
+)
 from .raw import develop, read_raw
 from .scene import Camera, Scene, bounding_sphere, sees
-from .schema import Table, load_toml, parse_scene
+from .schema import load_toml, parse_scene
 from .weights import downscale, validity
 
 log = logging.getLogger(__name__)
@@ -102,29 +116,73 @@ class Capture:
         return replace(self, scene=scene, views=views)
 
 
-def _inside(folder: Path, value, where: str, file: Path) -> Path:
-    if not isinstance(value, str):
-        raise CaptureError(f"{file}: {where} must be a file name")
-    path = (folder / value).resolve()
-    if not path.is_relative_to(folder.resolve()):
-        raise CaptureError(
-            f"{file}: {where} = {value!r} points outside the capture folder; "
-            "copy the file into the folder"
+def _in_folder(path: Path, info: ValidationInfo) -> Path:
+    folder = config_folder(info).resolve()
+    if not path.is_relative_to(folder):
+        raise ValueError(
+            f"{path} points outside the capture folder {folder}; copy the file into the folder"
         )
-    if not path.exists():
-        raise CaptureError(f"{file}: {where} = {value!r} does not exist")
     return path
 
 
-def _gain(t: Table) -> float:
-    if t.has("exposure_ev") and t.has("gain"):
-        raise t.error("gain", "and exposure_ev both given; give one")
-    if t.has("gain"):
-        gain = t.number("gain")
-        if gain <= 0:
-            raise t.error("gain", f"= {gain} must be > 0 (a relative exposure)")
-        return gain
-    return 2.0 ** t.number("exposure_ev", default=0.0)
+FileInFolder = Annotated[ExistingPath, AfterValidator(_in_folder)]
+WhiteBalance = by_shape(text=Literal["camera", "none"], array=PositiveVec3)
+TruthValue = by_shape(number=FiniteFloat, array=list[FiniteFloat])
+
+
+class CaptureSettings(StrictModel):
+    encoding: Literal[ENCODINGS] = "linear"
+    """How the images encode light: linear, srgb or raw (camera RAW, developed here)."""
+    white_balance: WhiteBalance = "camera"
+    """RAW only: camera (as shot), none, or [r, g, b] multipliers."""
+    downscale: PositiveInt = 1
+    """Integer area-averaging factor for fitting (the cameras follow)."""
+    dilate: NonNegativeInt = 2
+    """Saturated pixels invalidate this many neighbouring pixels."""
+
+    @model_validator(mode="after")
+    def _raw_only(self):
+        if self.encoding != "raw" and "white_balance" in self.model_fields_set:
+            raise FieldError("white_balance", 'applies to encoding = "raw" only; drop it')
+        return self
+
+
+class ViewSpec(StrictModel):
+    image: FileInFolder
+    """The photograph, relative to the manifest, inside its folder."""
+    mask: FileInFolder | None = None
+    """An optional object mask of the image's size."""
+    exposure_ev: FiniteFloat | None = None
+    """The image is divided by 2^exposure_ev (or give gain)."""
+    gain: PositiveFloat | None = None
+    """The image is divided by this relative exposure (or give exposure_ev)."""
+    camera: dict[str, Any]
+    """A camera table as in [[scene.cameras]]; width and height default to the image's."""
+
+    @model_validator(mode="after")
+    def _one_exposure(self):
+        if self.gain is not None and self.exposure_ev is not None:
+            raise FieldError("gain", "and exposure_ev both given; give one")
+        return self
+
+
+class Manifest(StrictModel):
+    capture: CaptureSettings = CaptureSettings()
+    """How to read the images."""
+    scene: dict[str, Any] = Field(default_factory=dict)
+    """The scene as in render configs, without cameras (the views have them)."""
+    views: tuple[ViewSpec, ...] = ()
+    """The photographs ([[views]])."""
+    truth: dict[str, TruthValue] = Field(default_factory=dict)
+    """Synthetic captures only: the true parameter values, to score fits."""
+
+    @model_validator(mode="after")
+    def _complete(self):
+        if not self.views:
+            raise FieldError("views", "the photo set is empty; add [[views]] with an image each")
+        if "cameras" in self.scene:
+            raise FieldError("scene.cameras", "not in a capture; each view has its camera")
+        return self
 
 
 def load_capture(path: str | Path) -> Capture:
@@ -132,77 +190,42 @@ def load_capture(path: str | Path) -> Capture:
     path = Path(path)
     if path.is_dir():
         path = path / "capture.toml"
-    doc = load_toml(path, "capture manifest")
-    unknown = sorted(set(doc) - {"capture", "scene", "views", "truth"})
-    if unknown:
-        raise CaptureError(
-            f"{path}: unknown table(s) {', '.join(unknown)}; known: capture, scene, views, truth"
-        )
-    settings = Table(
-        doc.get("capture", {}),
-        path,
-        "capture",
-        ("encoding", "white_balance", "downscale", "dilate"),
-    )
-    encoding = settings.string("encoding", "linear", ENCODINGS)
-    wb = settings._get("white_balance", "camera", False)
-    if isinstance(wb, list):
-        wb = np.array(settings.vec("white_balance"))
-        if np.any(wb <= 0):
-            raise settings.error("white_balance", "multipliers must be > 0")
-    elif wb not in ("camera", "none"):
-        raise settings.error("white_balance", f"= {wb!r}; use camera, none or [r, g, b]")
-    if encoding != "raw" and settings.has("white_balance"):
-        raise settings.error("white_balance", 'applies to encoding = "raw" only')
-    factor = settings.number("downscale", int, 1, 1)
-    dilate = settings.number("dilate", int, 2, 0)
-
-    views_doc = doc.get("views", [])
-    if not isinstance(views_doc, list) or not views_doc:
-        raise CaptureError(f"{path}: the photo set is empty: add [[views]] with an image each")
-    folder = path.parent
+    manifest = parse_model(Manifest, load_toml(path, "capture manifest"), path)
+    settings = manifest.capture
     views, warnings, cameras = [], [], []
-    for i, item in enumerate(views_doc):
-        t = Table(item, path, f"views[{i}]", ("image", "mask", "exposure_ev", "gain", "camera"))
-        image_path = _inside(folder, t._get("image", None, True), f"views[{i}].image", path)
-        if encoding == "raw":
-            raw = read_raw(image_path)
-            image, saturated = develop(raw, wb), raw.saturated
+    for i, spec in enumerate(manifest.views):
+        if settings.encoding == "raw":
+            raw = read_raw(spec.image)
+            image, saturated = develop(raw, settings.white_balance), raw.saturated
         else:
-            image, saturated, warned = read_linear(image_path, encoding)
+            image, saturated, warned = read_linear(spec.image, settings.encoding)
             warnings += warned
         h, w = image.shape[:2]
         if not np.all(np.isfinite(image)):
             bad = int(np.sum(~np.all(np.isfinite(image), axis=-1)))
-            warnings.append(f"{image_path}: {bad} NaN/Inf pixels get weight 0")
+            warnings.append(f"{spec.image}: {bad} NaN/Inf pixels get weight 0")
         mask = None
-        if t.has("mask"):
-            mask_path = _inside(folder, t.data["mask"], f"views[{i}].mask", path)
-            mask = read_mask(mask_path)
+        if spec.mask is not None:
+            mask = read_mask(spec.mask)
             if mask.shape != (h, w):
                 raise CaptureError(
                     f"{path}: views[{i}].mask is {mask.shape[1]}x{mask.shape[0]} but the image "
                     f"is {w}x{h}; masks must match their image"
                 )
-        gain = _gain(t)
-        image, weight = validity(image / gain, saturated, mask, dilate)
-        camera = dict(t._get("camera", None, True))
-        camera.setdefault("width", w)
-        camera.setdefault("height", h)
+        gain = spec.gain if spec.gain is not None else 2.0 ** (spec.exposure_ev or 0.0)
+        image, weight = validity(image / gain, saturated, mask, settings.dilate)
+        camera = {"width": w, "height": h, **spec.camera}
         if (camera["width"], camera["height"]) != (w, h):
             raise CaptureError(
                 f"{path}: views[{i}].camera is {camera['width']}x{camera['height']} but "
-                f"{image_path.name} is {w}x{h}"
+                f"{spec.image.name} is {w}x{h}"
             )
         cameras.append(camera)
-        views.append(View(image_path.stem, image, weight, None, gain, mask=mask))  # camera below
+        views.append(View(spec.image.stem, image, weight, None, gain, mask=mask))  # camera below
         if weight.mean() == 0:
-            raise CaptureError(f"{path}: views[{i}] ({image_path.name}) has no valid pixel")
+            raise CaptureError(f"{path}: views[{i}] ({spec.image.name}) has no valid pixel")
 
-    scene_table = dict(doc.get("scene", {}))
-    if "cameras" in scene_table:
-        raise CaptureError(f"{path}: [scene] takes no cameras in a capture: each view has one")
-    scene = parse_scene({**scene_table, "cameras": cameras}, path)
+    scene = parse_scene({**manifest.scene, "cameras": cameras}, path)
     for view, camera in zip(views, scene.cameras, strict=True):
         view.camera = camera
     center, radius = bounding_sphere(scene.geometry)
@@ -212,23 +235,11 @@ def load_capture(path: str | Path) -> Capture:
                 f"{path}: views[{i}].camera does not see the object (centre {center.round(3)}, "
                 f"radius {radius:.3g}): check its origin, target and field of view"
             )
-    truth = _truth(doc.get("truth", {}), path)
     for message in warnings:
         log.warning(message)
-    return Capture(scene, views, truth, path, warnings).downscaled(factor)
-
-
-def _truth(table, path: Path) -> dict:
-    if not isinstance(table, dict):
-        raise CaptureError(f"{path}: [truth] must be a table of parameter values")
-    out = {}
-    for key, value in table.items():
-        ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-        ok |= isinstance(value, list) and all(isinstance(x, int | float) for x in value)
-        if not ok:
-            raise CaptureError(f"{path}: truth.{key} = {value!r} must be a number or numbers")
-        out[key] = value
-    return out
+    return Capture(scene, views, dict(manifest.truth), path, warnings).downscaled(
+        settings.downscale
+    )
 
 
 # Writing -----------------------------------------------------------------------------------------

@@ -31,13 +31,30 @@ from __future__ import annotations
 
 import math
 import tomllib
+from dataclasses import asdict
 from pathlib import Path
+from typing import Annotated, ClassVar, Literal
 
 import numpy as np
+from pydantic import BeforeValidator, Field, StrictBool, field_validator, model_validator
 
 from .color import blackbody_rgb
 from .errors import CaptureError
 from .geometry import CupShape, check_obj_has_uvs
+from .model import (
+    ExistingPath,
+    FieldError,
+    FiniteFloat,
+    NonNegativeFloat,
+    NonNegativeVec3,
+    PositiveFloat,
+    PositiveInt,
+    StrictModel,
+    Vec3,
+    by_shape,
+    parse_model,
+    tagged,
+)
 from .scene import (
     Camera,
     Cup,
@@ -50,8 +67,6 @@ from .scene import (
     Sphere,
 )
 
-INTEGRATORS = ("prb", "path")
-
 
 def load_toml(path: Path, what: str = "file") -> dict:
     """A TOML document, or a `CaptureError` naming the file and what is wrong with it."""
@@ -63,308 +78,356 @@ def load_toml(path: Path, what: str = "file") -> dict:
         raise CaptureError(f"{path}: not valid TOML ({err})") from None
 
 
-class Table:
-    """A TOML table that knows where it came from and which keys it may hold."""
-
-    def __init__(self, data, file: Path, where: str, known: tuple[str, ...]):
-        if not isinstance(data, dict):
-            raise CaptureError(f"{file}: [{where}] must be a table")
-        unknown = sorted(set(data) - set(known))
-        if unknown:  # before missing keys: a misspelt key is the likelier mistake
-            raise CaptureError(
-                f"{file}: unknown key(s) {', '.join(unknown)} in "
-                f"{f'[{where}]' if where else 'the top level'}; "
-                f"known: {', '.join(known)}"
-            )
-        self.data, self.file, self.where = data, file, where
-
-    def has(self, key) -> bool:
-        return key in self.data
-
-    def error(self, key, problem) -> CaptureError:
-        name = f"{self.where}.{key}" if self.where else key
-        return CaptureError(f"{self.file}: {name} {problem}")
-
-    def _get(self, key, default, required):
-        if key not in self.data:
-            if required:
-                place = f"[{self.where}]" if self.where else "the top level"
-                raise CaptureError(f"{self.file}: {place} needs {key!r}")
-            return default
-        return self.data[key]
-
-    def vec(self, key, n=3, default=None, required=None):
-        value = self._get(key, default, default is None if required is None else required)
-        if value is None:
-            return None
-        try:
-            out = tuple(float(x) for x in value)
-        except (TypeError, ValueError):
-            out = ()
-        if len(out) != n or not all(math.isfinite(x) for x in out):
-            raise self.error(key, f"must be {n} finite numbers, got {value!r}")
-        return out
-
-    def number(self, key, kind=float, default=None, minimum=None, required=None):
-        value = self._get(key, default, default is None if required is None else required)
-        if value is None:
-            return None
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise self.error(key, f"must be a number, got {value!r}")
-        if kind is int and int(value) != value:
-            raise self.error(key, f"must be an integer, got {value!r}")
-        if not math.isfinite(value) or (minimum is not None and value < minimum):
-            raise self.error(key, f"= {value} must be >= {minimum}")
-        return kind(value)
-
-    def positive(self, key, default=None, required=None):
-        value = self.number(key, float, default, 0.0, required)
-        if value is not None and value <= 0:
-            raise self.error(key, f"= {value} must be > 0")
-        return value
-
-    def string(self, key, default=None, choices=None):
-        value = self._get(key, default, default is None)
-        if not isinstance(value, str):
-            raise self.error(key, f"must be a string, got {value!r}")
-        if choices is not None and value not in choices:
-            raise self.error(key, f"= {value!r}; choose one of {', '.join(choices)}")
-        return value
-
-    def boolean(self, key, default):
-        value = self._get(key, default, False)
-        if not isinstance(value, bool):
-            raise self.error(key, f"must be true or false, got {value!r}")
-        return value
-
-    def path(self, key, default=None):
-        value = self.string(key, default)
-        path = (self.file.parent / value).resolve()
-        if not path.exists():
-            raise self.error(key, f"= {value!r} does not exist (relative to {self.file.parent})")
-        return path
-
-    def tables(self, key):
-        value = self._get(key, [], False)
-        if not isinstance(value, list):
-            raise self.error(key, "must be an array of tables ([[...]])")
-        return value
-
-
 # Geometry -----------------------------------------------------------------------------------------
 
-_CUP_KEYS = ("height", "radius_top", "radius_bottom", "wall", "base", "fillet", "segments")
+
+class SphereSpec(StrictModel):
+    type: Literal["sphere"]
+    """Mitsuba's analytic sphere (with UVs)."""
+    center: Vec3 = (0.0, 0.0, 0.0)
+    """Centre in metres."""
+    radius: PositiveFloat = 1.0
+    """Radius in metres."""
+
+    def build(self) -> Sphere:
+        return Sphere(self.center, self.radius)
 
 
-def _geometry(value, file: Path):
+class CupSpec(StrictModel):
+    type: Literal["cup"]
+    """The procedural cup (`captures.geometry.cup_mesh`)."""
+    height: PositiveFloat = CupShape.height
+    """Height in metres."""
+    radius_top: PositiveFloat = CupShape.radius_top
+    """Outer radius at the rim, metres."""
+    radius_bottom: PositiveFloat = CupShape.radius_bottom
+    """Outer radius at the foot, metres."""
+    wall: PositiveFloat = CupShape.wall
+    """Wall thickness, metres."""
+    base: PositiveFloat = CupShape.base
+    """Base thickness, metres."""
+    fillet: PositiveFloat = CupShape.fillet
+    """Radius of the fillets joining base and walls, metres."""
+    handle: StrictBool = CupShape.handle
+    """Whether the cup has a handle."""
+    segments: Annotated[int, Field(ge=8, strict=True)] = CupShape.segments
+    """Segments around the axis."""
+
+    @model_validator(mode="after")
+    def _shape_is_sound(self):
+        self.build()  # CupShape's ValueError names the dimension
+        return self
+
+    def build(self) -> Cup:
+        return Cup(CupShape(**self.model_dump(exclude={"type"})))
+
+
+class ObjSpec(StrictModel):
+    type: Literal["obj"]
+    """A triangle mesh with UVs from an OBJ file."""
+    file: ExistingPath
+    """The OBJ file, relative to the TOML file's folder."""
+
+    @field_validator("file")
+    @classmethod
+    def _is_obj(cls, path: Path) -> Path:
+        if path.suffix.lower() != ".obj":
+            raise ValueError(f"'{path.name}' is not an OBJ file; only OBJ meshes are read")
+        return path
+
+    def build(self) -> ObjFile:
+        check_obj_has_uvs(self.file)
+        return ObjFile(self.file)
+
+
+def _geometry_shorthand(value):
+    """ "sphere", "cup" or an OBJ file name for its table."""
     if isinstance(value, str):
-        value = {"type": value} if value in ("sphere", "cup") else {"type": "obj", "file": value}
-    t = Table(
-        value, file, "scene.geometry", ("type", "file", "center", "radius", "handle", *_CUP_KEYS)
-    )
-    kind = t.string("type", choices=("sphere", "cup", "obj"))
-    if kind == "sphere":
-        return Sphere(t.vec("center", default=(0.0, 0.0, 0.0)), t.positive("radius", 1.0))
-    if kind == "cup":
-        defaults = CupShape()
-        values = {k: t.positive(k, getattr(defaults, k)) for k in _CUP_KEYS if k != "segments"}
-        values["segments"] = t.number("segments", int, defaults.segments, 8)
-        try:
-            return Cup(CupShape(**values, handle=t.boolean("handle", True)))
-        except ValueError as err:
-            raise CaptureError(f"{file}: scene.geometry: {err}") from None
-    path = t.path("file")
-    if path.suffix.lower() != ".obj":
-        raise t.error("file", f"= {path.name!r}: only OBJ meshes are read")
-    check_obj_has_uvs(path)
-    return ObjFile(path)
+        return {"type": value} if value in ("sphere", "cup") else {"type": "obj", "file": value}
+    return value
+
+
+Geometry = Annotated[tagged(SphereSpec, CupSpec, ObjSpec), BeforeValidator(_geometry_shorthand)]
 
 
 # Cameras ------------------------------------------------------------------------------------------
 
 
-def _camera(item, file: Path, i: int) -> Camera:
-    c = Table(
-        item,
-        file,
-        f"scene.cameras[{i}]",
-        (
-            "type",
-            "origin",
-            "target",
-            "up",
-            "fov_x_deg",
-            "width",
-            "height",
-            "aperture_radius",
-            "focus_distance",
-            "ortho_width",
-        ),
-    )
-    kind = c.string("type", "perspective", ("perspective", "orthographic"))
-    origin, target = c.vec("origin"), c.vec("target")
-    if np.linalg.norm(np.subtract(target, origin)) == 0:
-        raise c.error("target", "equals origin: the camera has no viewing direction")
-    camera = Camera(
-        origin=origin,
-        target=target,
-        up=c.vec("up", default=(0.0, 0.0, 1.0)),
-        fov_x_deg=c.number("fov_x_deg", required=kind == "perspective", default=40.0),
-        width=c.number("width", int, minimum=1),
-        height=c.number("height", int, minimum=1),
-        kind=kind,
-        aperture_radius=c.number("aperture_radius", default=0.0, minimum=0.0),
-        focus_distance=c.positive("focus_distance", required=False),
-        ortho_width=c.positive("ortho_width", required=kind == "orthographic", default=1.0),
-    )
-    if kind == "perspective" and not 0 < camera.fov_x_deg < 180:
-        raise c.error("fov_x_deg", f"= {camera.fov_x_deg} must be in (0, 180)")
-    if kind == "orthographic" and (c.has("fov_x_deg") or c.has("aperture_radius")):
-        raise c.error("type", "= 'orthographic' takes ortho_width, not fov_x_deg/aperture_radius")
-    return camera
+class CameraSpec(StrictModel):
+    type: Literal["perspective", "orthographic"] = "perspective"
+    """The projection."""
+    origin: Vec3
+    """The camera's position, metres."""
+    target: Vec3
+    """The point it looks at, metres."""
+    up: Vec3 = (0.0, 0.0, 1.0)
+    """The world direction that is up in the image."""
+    fov_x_deg: Annotated[FiniteFloat, Field(gt=0, lt=180)] = 40.0
+    """Horizontal field of view in degrees (perspective only; required there)."""
+    width: PositiveInt
+    """Image width in pixels."""
+    height: PositiveInt
+    """Image height in pixels."""
+    aperture_radius: NonNegativeFloat = 0.0
+    """Thin-lens aperture radius in metres (perspective only; 0: a pinhole)."""
+    focus_distance: PositiveFloat | None = None
+    """Thin-lens focus distance in metres (default: the target's)."""
+    ortho_width: PositiveFloat = 1.0
+    """Horizontal extent of the view in metres (orthographic only; required there)."""
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        given = self.model_fields_set
+        if self.origin == self.target:
+            raise FieldError("target", "equals origin; the camera needs a viewing direction")
+        if self.type == "perspective" and "fov_x_deg" not in given:
+            raise FieldError("fov_x_deg", "missing; add it (a perspective camera needs it)")
+        if self.type == "orthographic":
+            if "ortho_width" not in given:
+                raise FieldError("ortho_width", "missing; add it (an orthographic camera needs it)")
+            for key in sorted({"fov_x_deg", "aperture_radius"} & given):
+                raise FieldError(key, "does not apply to type = 'orthographic'; drop it")
+        return self
+
+    def build(self) -> Camera:
+        return Camera(kind=self.type, **self.model_dump(exclude={"type"}))
 
 
 # Lights -------------------------------------------------------------------------------------------
 
+Amount = by_shape(number=NonNegativeFloat, array=NonNegativeVec3)
 
-def _colour(t: Table) -> np.ndarray:
-    """`color` (RGB) or `temperature` (kelvin, luminance 1), default white."""
-    if t.has("color") and t.has("temperature"):
-        raise t.error("color", "and temperature both given; give one")
-    if t.has("temperature"):
+
+class _Emitter(StrictModel):
+    """A light's colour and amount: `<amount>` as RGB or a number times the colour, or `power`
+    (watts, where the light has it) times the colour."""
+
+    color: NonNegativeVec3 | None = None
+    """Linear RGB tint of a number or power (default white); or give temperature."""
+    temperature: PositiveFloat | None = None
+    """Colour temperature in kelvin (luminance 1); or give color."""
+
+    amount: ClassVar[str]  # the field holding the amount
+
+    @field_validator("temperature")
+    @classmethod
+    def _black_body(cls, kelvin: float | None):
         try:
-            return np.array(blackbody_rgb(t.positive("temperature")))
+            blackbody_rgb(kelvin or 6500.0)  # None only from Python callers
         except ValueError as err:
-            raise t.error("temperature", f"{err}") from None
-    colour = np.array(t.vec("color", default=(1.0, 1.0, 1.0)))
-    if np.any(colour < 0):
-        raise t.error("color", "must not be negative")
-    return colour
+            raise ValueError(str(err).removeprefix("= ")) from None
+        return kelvin
+
+    @model_validator(mode="after")
+    def _one_amount(self):
+        if self.color is not None and self.temperature is not None:
+            raise ValueError("color and temperature both given; give one")
+        self.rgb()
+        return self
+
+    def per_watt(self) -> float:
+        """The amount per watt of power per unit of colour."""
+        raise NotImplementedError
+
+    def rgb(self) -> tuple[float, float, float]:
+        """The light's linear RGB amount."""
+        direct, power = getattr(self, self.amount), getattr(self, "power", None)
+        if (direct is None) == (power is None):
+            raise ValueError(f"needs exactly one of {self.amount} or power; give one")
+        white = self.color or (1.0, 1.0, 1.0)
+        colour = np.array(white if self.temperature is None else blackbody_rgb(self.temperature))
+        if isinstance(direct, tuple):
+            if self.color is not None or self.temperature is not None:
+                raise FieldError(self.amount, "is RGB already; drop color/temperature")
+            value = np.array(direct)
+        else:
+            value = (direct if power is None else power * self.per_watt()) * colour
+        if not np.any(value > 0):
+            raise FieldError(self.amount if power is None else "power", "is zero; make it > 0")
+        return tuple(float(x) for x in value)
 
 
-def _amount(t: Table, direct: str, per_watt: float | None) -> tuple[float, float, float]:
-    """A light's RGB amount: `direct` given as RGB (or a number times the colour), or `power`
-    (watts) times the colour times `per_watt`."""
-    given = [k for k in (direct, "power") if t.has(k) and (k == direct or per_watt is not None)]
-    if len(given) != 1:
-        options = f"{direct} or power" if per_watt is not None else direct
-        raise CaptureError(f"{t.file}: [{t.where}] needs exactly one of {options}")
-    if given[0] == "power":
-        value = t.positive("power") * per_watt * _colour(t)
-    elif isinstance(t.data[direct], int | float):
-        value = t.number(direct, minimum=0.0) * _colour(t)
-    else:
-        if t.has("color") or t.has("temperature"):
-            raise t.error(direct, "is RGB already; drop color/temperature or give a number")
-        value = np.array(t.vec(direct))
-    if np.any(value < 0) or not np.any(value > 0):
-        raise t.error(given[0], "must be positive")
-    return tuple(float(x) for x in value)
+class RectLightSpec(_Emitter):
+    type: Literal["rectangle"] = "rectangle"
+    """A one-sided emitting rectangle."""
+    center: Vec3
+    """Centre in metres."""
+    target: Vec3 | None = None
+    """A point it faces (or give u_axis, v_axis, emit_direction)."""
+    up: Vec3 | None = None
+    """With target: the world direction its v edge leans towards (default +z)."""
+    u_axis: Vec3 | None = None
+    """Unit direction of the first edge."""
+    v_axis: Vec3 | None = None
+    """Unit direction of the second edge."""
+    emit_direction: Vec3 | None = None
+    """Unit direction it emits towards, -(u_axis x v_axis)."""
+    size: tuple[PositiveFloat, PositiveFloat]
+    """Edge lengths along u_axis and v_axis, metres."""
+    radiance: Amount | None = None
+    """Emitted radiance, W/(m^2 sr): linear RGB, or a number times the colour."""
+    power: PositiveFloat | None = None
+    """Emitted power in watts (or give radiance)."""
 
+    amount = "radiance"
 
-def _frame(t: Table):
-    """(u, v, n) of a rectangle light: given, or facing `target` (with `up`)."""
-    if t.has("target"):
-        n = np.subtract(t.vec("target"), t.vec("center"))
-        if np.linalg.norm(n) == 0:
-            raise t.error("target", "equals center")
+    @model_validator(mode="after")
+    def _frame_given(self):
+        axes = ("u_axis", "v_axis", "emit_direction")
+        if self.target is not None:
+            if any(getattr(self, k) is not None for k in axes):
+                raise ValueError("give target (and up) or u_axis, v_axis, emit_direction, not both")
+            if self.target == self.center:
+                raise FieldError("target", "equals center; the light needs a direction")
+            return self
+        for key in axes:
+            if getattr(self, key) is None:
+                raise FieldError(key, "missing; add it, or give target instead")
+        uvn = np.array([getattr(self, k) for k in axes])
+        if not np.allclose(uvn @ uvn.T, np.eye(3), atol=1e-3):
+            raise ValueError("u_axis, v_axis, emit_direction must be orthogonal unit vectors")
+        return self
+
+    def per_watt(self) -> float:
+        return 1.0 / (math.pi * (self.size[0] * self.size[1]))  # the area first, as before
+
+    def frame(self):
+        """(u, v, n): given, or facing `target` with `up` (n = -(u x v), the peers' convention)."""
+        if self.target is None:
+            return self.u_axis, self.v_axis, self.emit_direction
+        n = np.subtract(self.target, self.center)
         n /= np.linalg.norm(n)
-        up = np.array(t.vec("up", default=(0.0, 0.0, 1.0)))
-        u = np.cross(up, n)
+        u = np.cross(self.up or (0.0, 0.0, 1.0), n)
         if np.linalg.norm(u) < 1e-6:
             u = np.cross([1.0, 0.0, 0.0], n)
         u /= np.linalg.norm(u)
-        v = np.cross(u, n)  # so that n = -(u x v), the peers' convention
-        return tuple(u), tuple(v), tuple(n)
-    u, v, n = (np.array(t.vec(k)) for k in ("u_axis", "v_axis", "emit_direction"))
-    for key, vec in (("u_axis", u), ("v_axis", v), ("emit_direction", n)):
-        if abs(np.linalg.norm(vec) - 1) > 1e-3:
-            raise t.error(key, "must be a unit vector")
-    if abs(u @ v) > 1e-3 or abs(u @ n) > 1e-3 or abs(v @ n) > 1e-3:
-        raise CaptureError(
-            f"{t.file}: [{t.where}] u_axis, v_axis, emit_direction must be orthogonal"
+        return tuple(tuple(float(x) for x in a) for a in (u, np.cross(u, n), n))
+
+    def build(self) -> RectLight:
+        u, v, n = self.frame()
+        return RectLight(self.center, u, v, self.size, n, self.rgb())
+
+
+class PointLightSpec(_Emitter):
+    type: Literal["point"]
+    """An isotropic point light."""
+    position: Vec3
+    """Position in metres."""
+    intensity: Amount | None = None
+    """Radiant intensity, W/sr: linear RGB, or a number times the colour."""
+    power: PositiveFloat | None = None
+    """Emitted power in watts (or give intensity)."""
+
+    amount = "intensity"
+
+    def per_watt(self) -> float:
+        return 1.0 / (4 * math.pi)
+
+    def build(self) -> PointLight:
+        return PointLight(self.position, self.rgb())
+
+
+class DirectionalLightSpec(_Emitter):
+    type: Literal["directional"]
+    """A distant light."""
+    direction: Vec3
+    """The direction the light travels (normalised here)."""
+    irradiance: Amount
+    """Irradiance, W/m^2: linear RGB, or a number times the colour."""
+
+    amount = "irradiance"
+
+    @field_validator("direction")
+    @classmethod
+    def _nonzero(cls, direction):
+        if not any(direction):
+            raise ValueError("is zero; give the direction the light travels")
+        return direction
+
+    def build(self) -> DirectionalLight:
+        d = np.array(self.direction) / np.linalg.norm(self.direction)
+        return DirectionalLight(tuple(float(x) for x in d), self.rgb())
+
+
+Light = tagged(RectLightSpec, PointLightSpec, DirectionalLightSpec, default="rectangle")
+
+
+# Environment and scene ----------------------------------------------------------------------------
+
+
+class ConstantEnvSpec(StrictModel):
+    type: Literal["constant"]
+    """Constant radiance from every direction."""
+    radiance: NonNegativeVec3
+    """Linear RGB radiance, W/(m^2 sr)."""
+
+    def build(self) -> tuple[float, float, float]:
+        return self.radiance
+
+
+class EnvMapSpec(StrictModel):
+    type: Literal["envmap"]
+    """A lat-long environment map."""
+    file: ExistingPath
+    """The linear image, relative to the TOML file's folder."""
+    scale: PositiveFloat = 1.0
+    """Factor on the map's values."""
+
+    def build(self) -> EnvMap:
+        return EnvMap(self.file, self.scale)
+
+
+def _environment_shorthand(value):
+    """[r, g, b] for a constant environment's table."""
+    return {"type": "constant", "radiance": value} if isinstance(value, list | tuple) else value
+
+
+Environment = Annotated[
+    tagged(ConstantEnvSpec, EnvMapSpec), BeforeValidator(_environment_shorthand)
+]
+
+
+class SceneSpec(StrictModel):
+    geometry: Geometry
+    """The object: "sphere", "cup", an OBJ file, or a table with its type."""
+    cameras: Annotated[tuple[CameraSpec, ...], Field(min_length=1)]
+    """The views' cameras ([[scene.cameras]])."""
+    lights: tuple[Light, ...] = ()
+    """The lights ([[scene.lights]])."""
+    environment: Environment = ConstantEnvSpec(type="constant", radiance=(0.0, 0.0, 0.0))
+    """Light from afar: [r, g, b] radiance or a table (constant or envmap)."""
+    integrator: Literal["prb", "path"] = "prb"
+    """Mitsuba's integrator."""
+    max_depth: PositiveInt = 8
+    """The integrator's maximum path depth."""
+
+    @model_validator(mode="after")
+    def _lit(self):
+        if (
+            not self.lights
+            and self.environment.type == "constant"
+            and not any(self.environment.radiance)
+        ):
+            raise ValueError("the scene has no light; add [[scene.lights]] or an environment")
+        return self
+
+    def build(self) -> Scene:
+        return Scene(
+            geometry=self.geometry.build(),
+            cameras=tuple(c.build() for c in self.cameras),
+            lights=tuple(light.build() for light in self.lights),
+            environment=self.environment.build(),
+            integrator=self.integrator,
+            max_depth=self.max_depth,
         )
-    return tuple(u), tuple(v), tuple(n)
-
-
-def _light(item, file: Path, i: int):
-    where = f"scene.lights[{i}]"
-    kind = item.get("type", "rectangle") if isinstance(item, dict) else None
-    colour_keys = ("color", "temperature")
-    if kind == "rectangle":
-        t = Table(
-            item,
-            file,
-            where,
-            (
-                "type",
-                "center",
-                "target",
-                "up",
-                "u_axis",
-                "v_axis",
-                "emit_direction",
-                "size",
-                "radiance",
-                "power",
-                *colour_keys,
-            ),
-        )
-        size = t.vec("size", 2)
-        if min(size) <= 0:
-            raise t.error("size", "must be positive")
-        u, v, n = _frame(t)
-        area = size[0] * size[1]
-        radiance = _amount(t, "radiance", 1.0 / (math.pi * area))
-        return RectLight(t.vec("center"), u, v, size, n, radiance)
-    if kind == "point":
-        t = Table(item, file, where, ("type", "position", "intensity", "power", *colour_keys))
-        return PointLight(t.vec("position"), _amount(t, "intensity", 1.0 / (4 * math.pi)))
-    if kind == "directional":
-        t = Table(item, file, where, ("type", "direction", "irradiance", *colour_keys))
-        direction = np.array(t.vec("direction"))
-        if np.linalg.norm(direction) == 0:
-            raise t.error("direction", "must not be zero")
-        return DirectionalLight(
-            tuple(direction / np.linalg.norm(direction)), _amount(t, "irradiance", None)
-        )
-    raise CaptureError(f"{file}: {where}.type = {kind!r}; choose rectangle, point or directional")
-
-
-def _environment(value, file: Path):
-    if not isinstance(value, dict):
-        t = Table({"radiance": value}, file, "scene", ("radiance",))
-        return t.vec("radiance")
-    t = Table(value, file, "scene.environment", ("type", "radiance", "file", "scale"))
-    if t.string("type", choices=("constant", "envmap")) == "constant":
-        return t.vec("radiance")
-    return EnvMap(t.path("file"), t.positive("scale", 1.0))
 
 
 def parse_scene(data: dict, file: Path) -> Scene:
     """A `Scene` from the `[scene]` table of `file` (relative paths resolve against its folder)."""
-    t = Table(
-        data,
-        file,
-        "scene",
-        ("geometry", "cameras", "lights", "environment", "integrator", "max_depth"),
-    )
-    geometry = _geometry(t._get("geometry", None, True), file)
-    cameras = tuple(_camera(item, file, i) for i, item in enumerate(t.tables("cameras")))
-    if not cameras:
-        raise CaptureError(f"{file}: [scene] needs at least one [[scene.cameras]]")
-    lights = tuple(_light(item, file, i) for i, item in enumerate(t.tables("lights")))
-    environment = _environment(t._get("environment", (0.0, 0.0, 0.0), False), file)
-    if not lights and not isinstance(environment, EnvMap) and not any(environment):
-        raise CaptureError(f"{file}: the scene has no light: add [[scene.lights]] or environment")
-    return Scene(
-        geometry=geometry,
-        cameras=cameras,
-        lights=lights,
-        environment=environment,
-        integrator=t.string("integrator", "prb", INTEGRATORS),
-        max_depth=t.number("max_depth", int, default=8, minimum=1),
-    )
+    return parse_model(SceneSpec, data, file, "scene").build()
+
+
+# Writing ------------------------------------------------------------------------------------------
 
 
 def scene_to_table(scene: Scene, folder: Path | None = None) -> dict:
@@ -378,43 +441,20 @@ def scene_to_table(scene: Scene, folder: Path | None = None) -> dict:
     if isinstance(g, Sphere):
         geometry = {"type": "sphere", "center": list(g.center), "radius": g.radius}
     elif isinstance(g, Cup):
-        geometry = {
-            "type": "cup",
-            "handle": g.shape.handle,
-            **{k: getattr(g.shape, k) for k in _CUP_KEYS},
-        }
+        geometry = {"type": "cup", **asdict(g.shape)}
     else:
         geometry = {"type": "obj", "file": rel(g.path)}
     lights = []
     for light in scene.lights:
         if isinstance(light, RectLight):
-            lights.append(
-                {
-                    "type": "rectangle",
-                    "center": list(light.center),
-                    "u_axis": list(light.u_axis),
-                    "v_axis": list(light.v_axis),
-                    "emit_direction": list(light.emit_direction),
-                    "size": list(light.size),
-                    "radiance": list(light.radiance),
-                }
-            )
+            keys = ("center", "u_axis", "v_axis", "emit_direction", "size", "radiance")
+            lights.append({"type": "rectangle", **{k: list(getattr(light, k)) for k in keys}})
         elif isinstance(light, PointLight):
-            lights.append(
-                {
-                    "type": "point",
-                    "position": list(light.position),
-                    "intensity": list(light.intensity),
-                }
-            )
+            keys = ("position", "intensity")
+            lights.append({"type": "point", **{k: list(getattr(light, k)) for k in keys}})
         else:
-            lights.append(
-                {
-                    "type": "directional",
-                    "direction": list(light.direction),
-                    "irradiance": list(light.irradiance),
-                }
-            )
+            keys = ("direction", "irradiance")
+            lights.append({"type": "directional", **{k: list(getattr(light, k)) for k in keys}})
     env = scene.environment
     environment = (
         {"type": "envmap", "file": rel(env.path), "scale": env.scale}

@@ -1,1 +1,12 @@
-"""How parameters are recovered: scene assembly, rendering, the CLI (the fitter comes next)."""
+"""How parameters are recovered, by responsibility (data flows down this list):
+
+- `fit.config`: typed render and fit configs (TOML).
+- `fit.material`: a material as data: the Mitsuba dict and its parameter table, the key grammar,
+  free parameters, the native preset.
+- `fit.render`: Mitsuba scenes, forward renders, the `Renderer` and the one JAX <-> Dr.Jit bridge.
+- `fit.solvers`: the problem and its residuals, one solver per module and their registry,
+  schedules, uncertainty.
+- `fit.output`: figures and sheets, through one atomic writer.
+- `fit.commands`: one module per command; `fit.cli` is the thin command line over them.
+- `fit.variant`: choose the Mitsuba variant once (before anything imports Mitsuba).
+"""

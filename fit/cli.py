@@ -12,6 +12,8 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from captures.errors import InputError
+
 from .variant import BackendError, select_variant
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
@@ -29,6 +31,29 @@ def _fail(err: Exception, code: int) -> typer.Exit:
     """Print one unwrapped error line; return the exit to raise."""
     console.print(f"[red]error:[/] {err}", highlight=False, soft_wrap=True)
     return typer.Exit(code)
+
+
+def _scene_and_material(config: Path, scene: Path | None):
+    """(scene, material, spp) of a render config or a preset, the scene replaced by `scene`'s."""
+    from captures import CaptureError, parse_scene
+
+    from .config import load_render_config
+    from .material import load_preset, read_toml
+
+    doc = read_toml(config)
+    if "schema" in doc:  # a preset: the material only
+        if scene is None:
+            raise CaptureError(f"{config}: is a preset (a material); give --scene SCENE.toml")
+        material, spp = load_preset(config).material, 64
+    else:
+        cfg = load_render_config(config)
+        material, spp = cfg.material, cfg.spp
+        if scene is None:
+            return cfg.scene, material, spp
+    table = read_toml(scene)
+    if "scene" not in table:
+        raise CaptureError(f"{scene}: no [scene] table")
+    return parse_scene(table["scene"], scene), material, spp
 
 
 def _start(variant: str | None) -> None:
@@ -56,8 +81,13 @@ def _progress() -> Progress:
 @app.command()
 def render(
     config: Annotated[
-        Path, typer.Argument(help="Render config (TOML): [scene], [material], [render].")
+        Path,
+        typer.Argument(help="Render config (TOML: scene, material, render) or a preset (--scene)."),
     ],
+    scene: Annotated[
+        Path | None,
+        typer.Option(help="TOML whose scene table replaces the config's (needed for a preset)."),
+    ] = None,
     out: Annotated[
         Path, typer.Option(help="Output PNG (sRGB); a linear EXR is written beside it.")
     ] = Path("out/render.png"),
@@ -67,29 +97,27 @@ def render(
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     variant: VariantOption = None,
 ) -> None:
-    """Render a config's scene with its material: a linear EXR and an sRGB PNG per view."""
-    from captures import CaptureError
+    """Render a config's scene with its material (or a preset's material in --scene's scene): a
+    linear EXR and an sRGB PNG per view."""
     from captures.images import write_image
 
-    from .config import load_render_config
-
     try:
-        cfg = load_render_config(config)
-    except CaptureError as err:
+        the_scene, material, config_spp = _scene_and_material(config, scene)
+    except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)
     import mitsuba as mi
 
     from .render import render as render_image
-    from .scene import scene_dict
+    from .render import scene_dict
 
-    spp = spp or cfg.spp
-    views = len(cfg.scene.cameras)
+    spp = spp or config_spp
+    views = len(the_scene.cameras)
     with _progress() as bar:
         for view in range(views):
             task = bar.add_task(f"view {view}", total=spp)
-            scene = mi.load_dict(scene_dict(cfg.scene, cfg.material, view, spp))
-            image = render_image(scene, spp, seed, lambda n, t=task: bar.update(t, completed=n))
+            loaded = mi.load_dict(scene_dict(the_scene, material.bsdf, view, spp))
+            image = render_image(loaded, spp, seed, lambda n, t=task: bar.update(t, completed=n))
             stem = out.with_suffix("") if views == 1 else out.with_name(f"{out.stem}_{view:02d}")
             for path in (stem.with_suffix(".exr"), stem.with_suffix(out.suffix or ".png")):
                 write_image(path, image)
@@ -114,7 +142,7 @@ def bench(
     if only not in (None, "bsdf", "cup", "fit"):
         raise _fail(ValueError(f"--only {only!r}: choose bsdf, cup or fit"), 2)
     _start(variant)
-    from .bench import bsdf_speed_table, cup_speed_table, fit_trade_table
+    from .commands.bench import bsdf_speed_table, cup_speed_table, fit_trade_table
 
     tables = []
     with _progress() as bar:
@@ -123,11 +151,9 @@ def bench(
         if only in (None, "cup"):
             tables.append(cup_speed_table(spp=spp, repeats=repeats, progress=bar))
         if only == "fit":
-            from captures import CaptureError
-
             try:
                 tables.append(fit_trade_table(fit_config, progress=bar))
-            except (CaptureError, ValueError) as err:
+            except (InputError, ValueError) as err:
                 raise _fail(err, 2) from None
     for table in tables:
         console.print(table.rich())
@@ -139,7 +165,7 @@ def bench(
 @app.command()
 def synth(
     config: Annotated[
-        Path, typer.Argument(help="Render config (TOML) whose material is the truth.")
+        Path, typer.Argument(help="Render config (TOML) whose material is the truth, or a preset.")
     ],
     out: Annotated[Path, typer.Option(help="New capture folder to write.")],
     scene: Annotated[
@@ -159,35 +185,24 @@ def synth(
     ] = 0.0,
     variant: VariantOption = None,
 ) -> None:
-    """Render a synthetic capture (images, manifest, [truth]) from a config."""
-    import tomllib
-
-    from captures import CaptureError, parse_scene
-
-    from .config import load_render_config
-
+    """Render a synthetic capture (images, manifest, [truth]) from a config (or a preset with
+    --scene)."""
     try:
-        cfg = load_render_config(config)
-        the_scene = cfg.scene
-        if scene is not None:
-            doc = tomllib.loads(scene.read_text())
-            if "scene" not in doc:
-                raise CaptureError(f"{scene}: no [scene] table")
-            the_scene = parse_scene(doc["scene"], scene)
-    except (CaptureError, OSError, tomllib.TOMLDecodeError) as err:
+        the_scene, material, config_spp = _scene_and_material(config, scene)
+    except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)
-    from .synth import FORMATS, Degradation, synthesize
+    from .commands.synth import FORMATS, Degradation, synthesize
 
     if fmt not in FORMATS:
         raise _fail(ValueError(f"--format {fmt!r}: choose one of {', '.join(FORMATS)}"), 2)
-    spp = spp or cfg.spp
+    spp = spp or config_spp
     with _progress() as bar:
         tasks = [bar.add_task(f"view {i}", total=spp) for i in range(len(the_scene.cameras))]
         try:
             path = synthesize(
                 the_scene,
-                cfg.material,
+                material,
                 out,
                 spp,
                 seed,
@@ -218,14 +233,14 @@ def inspect(
     """A table of the views (size, gain, valid pixels, silhouette IoU) and a contact sheet."""
     from rich.table import Table as RichTable
 
-    from captures import CaptureError
+    from captures import open_capture
 
     _start(variant)
-    from .inspect import contact_sheet, open_capture, silhouettes, summary
+    from .commands.inspect import contact_sheet, silhouettes, summary
 
     try:
         cap = open_capture(capture, downscale)
-    except CaptureError as err:
+    except InputError as err:
         raise _fail(err, 2) from None
     for warning in cap.warnings:
         console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
@@ -260,29 +275,27 @@ def fit(
     """Fit the free material parameters to a capture; print recovered vs known values."""
     from rich.table import Table as RichTable
 
-    from captures import CaptureError
-
-    from .fitconfig import load_fit_config
+    from .config import load_fit_config
 
     try:
         cfg = load_fit_config(config)
-    except CaptureError as err:
+    except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)
-    from .run import run_fit
+    from .commands.fit import run_fit
 
     out = out or Path("out") / config.stem
     with _progress() as bar:
         tasks = [
             bar.add_task(
-                f"fit {k + 1}/{len(cfg.phases)}: {p.solver}, {p.spp} spp, 1/{p.downscale} res",
+                f"fit {k + 1}/{len(cfg.phases)}: {p.describe()}",
                 total=p.steps,
             )
             for k, p in enumerate(cfg.phases)
         ]
         try:
             summary = run_fit(cfg, out, lambda k, n, loss: bar.update(tasks[k], completed=n))
-        except (CaptureError, KeyError) as err:
+        except (InputError, KeyError) as err:
             raise _fail(err, 2) from None
     solvers = "+".join(p.solver for p in cfg.phases)
     table = RichTable(title=f"{config}: {solvers}, {summary['wall_time_s']:.1f} s")
@@ -313,7 +326,16 @@ def fit(
         console.print(f"[yellow]poorly determined:[/] {', '.join(summary['poorly_determined'])}")
     if summary["std"] is None:
         console.print("no uncertainty: too many free components for a Jacobian (textures)")
-    console.print(f"wrote {out / 'summary.json'}, loss.png and fit.png (photo | fit | difference)")
+    for report in summary["outcomes"]:
+        if report["outcome"] in ("diverged", "failed") or report["rejected"]:
+            console.print(
+                f"[yellow]{report['solver']}:[/] {report['outcome']}: {report['message']}",
+                highlight=False,
+            )
+    console.print(
+        f"wrote {out / 'preset.toml'}, summary.json, loss.png and fit.png "
+        "(photo | fit | difference)"
+    )
 
 
 def main() -> None:

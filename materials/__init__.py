@@ -4,9 +4,36 @@ Importing this package changes nothing; `register()` adds the plugins to the cur
 variant (the caller chooses the variant; this package never sets one).
 """
 
-from .params import GLAZE_PARAMS, OREN_NAYAR_PARAMS, ParamSpec
+from .params import (
+    EMITTER_PARAMS,
+    FBM,
+    GLAZE,
+    GLAZE_PARAMS,
+    LAYER_PLUGINS,
+    LAYERED,
+    OREN_NAYAR,
+    OREN_NAYAR_PARAMS,
+    ChoiceOption,
+    IntOption,
+    ParamSpec,
+    PluginDecl,
+)
 
-__all__ = ["GLAZE_PARAMS", "OREN_NAYAR_PARAMS", "ParamSpec", "register"]
+__all__ = [
+    "EMITTER_PARAMS",
+    "FBM",
+    "GLAZE",
+    "GLAZE_PARAMS",
+    "LAYERED",
+    "LAYER_PLUGINS",
+    "OREN_NAYAR",
+    "OREN_NAYAR_PARAMS",
+    "ChoiceOption",
+    "IntOption",
+    "ParamSpec",
+    "PluginDecl",
+    "register",
+]
 
 
 def register() -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .params import ParamSpec
+from .params import Option, ParamSpec
 
 
 def read_float(props: mi.Properties, spec: ParamSpec, plugin: str) -> mi.Float:
@@ -27,19 +27,6 @@ def read_texture(props: mi.Properties, spec: ParamSpec, plugin: str) -> mi.Textu
     return texture
 
 
-def read_choice(props: mi.Properties, key: str, choices: tuple[str, ...], plugin: str) -> str:
-    """A string option that must be one of `choices` (the first is the default)."""
-    value = props.get(key, choices[0])
-    if value not in choices:
-        raise ValueError(f"{plugin} plugin: {key} = {value!r}; choose one of {', '.join(choices)}")
-    return value
-
-
-def read_int(
-    props: mi.Properties, key: str, default: int, lower: int, upper: int, plugin: str
-) -> int:
-    """A structural integer option (not differentiable), checked against `[lower, upper]`."""
-    value = props.get(key, default)
-    if int(value) != value or not lower <= value <= upper:
-        raise ValueError(f"{plugin} plugin: {key} = {value}; use an integer in [{lower}, {upper}]")
-    return int(value)
+def read_option(props: mi.Properties, option: Option, plugin: str):
+    """A declared option (an integer or a choice), checked; its default when absent."""
+    return option.check(props.get(option.key, option.default), f"{plugin} plugin")

@@ -10,22 +10,23 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ._plugin import read_float, read_int
+from ._plugin import read_float, read_option
 from .noise import fbm
-from .params import MASK_PARAMS
+from .params import FBM
 
 
 class FbmMask(mi.Texture):
     """Scalar mask texture in [0, 1]. Options: `scale` (noise cells per UV unit, integer so that
-    the noise tiles), `octaves`, `seed`; parameters: see `materials.params.MASK_PARAMS`."""
+    the noise tiles), `octaves`, `seed`; parameters: see `materials.params.FBM`."""
 
-    PARAMS = MASK_PARAMS
+    DECL = FBM
+    PARAMS = FBM.params
 
     def __init__(self, props: mi.Properties):
         mi.Texture.__init__(self, props)
-        self.scale = read_int(props, "scale", 4, 1, 4096, "fbm")
-        self.octaves = read_int(props, "octaves", 4, 1, 12, "fbm")
-        self.seed = read_int(props, "seed", 0, 0, 2**31 - 1, "fbm")
+        self.scale, self.octaves, self.seed = (
+            read_option(props, FBM.options[k], "fbm") for k in ("scale", "octaves", "seed")
+        )
         self.threshold = read_float(props, self.PARAMS["threshold"], "fbm")
         self.softness = read_float(props, self.PARAMS["softness"], "fbm")
         self.texture = props.get_texture("texture") if "texture" in props else None
@@ -58,8 +59,6 @@ class FbmMask(mi.Texture):
     def traverse(self, callback):
         callback.put("threshold", self.threshold, mi.ParamFlags.Differentiable)
         callback.put("softness", self.softness, mi.ParamFlags.Differentiable)
-        if self.texture is not None:
-            callback.put("texture", self.texture, mi.ParamFlags.Differentiable)
         if self.texture is not None:
             callback.put("texture", self.texture, mi.ParamFlags.Differentiable)
 

@@ -24,13 +24,11 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ._plugin import read_choice, read_float, read_int, read_texture
+from ._plugin import read_float, read_option, read_texture
 from .microfacet import beckmann_d, cook_torrance_g, fresnel, oren_nayar, sample_beckmann
 from .noise import fbm
-from .params import GLAZE_OPTIONAL_PARAMS, GLAZE_PARAMS
+from .params import GLAZE
 
-COUPLINGS = ("paper", "reciprocal")
-FRESNELS = ("schlick", "exact")
 _GLOSSY = mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide
 _DIFFUSE = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
 # A lobe is never sampled with probability below this: keeps both lobes reachable for MIS.
@@ -41,10 +39,10 @@ _NOISE_OCTAVES = 4
 
 
 class Glaze(mi.BSDF):
-    """Glazed ceramic. Parameters: see `materials.params.GLAZE_PARAMS`; options `coupling`,
-    `fresnel`."""
+    """Glazed ceramic. Parameters and options: see `materials.params.GLAZE`."""
 
-    PARAMS = GLAZE_PARAMS
+    DECL = GLAZE
+    PARAMS = GLAZE.params
 
     def __init__(self, props: mi.Properties):
         mi.BSDF.__init__(self, props)
@@ -52,17 +50,16 @@ class Glaze(mi.BSDF):
         self.sigma = read_float(props, self.PARAMS["sigma"], "glaze")
         self.roughness = read_float(props, self.PARAMS["roughness"], "glaze")
         self.ior = read_float(props, self.PARAMS["ior"], "glaze")
-        self.coupling = read_choice(props, "coupling", COUPLINGS, "glaze")
-        self.fresnel = read_choice(props, "fresnel", FRESNELS, "glaze")
-        optional = GLAZE_OPTIONAL_PARAMS
+        options = {k: read_option(props, o, "glaze") for k, o in GLAZE.options.items()}
+        self.coupling, self.fresnel = options["coupling"], options["fresnel"]
         self.pigment_noise = self.normal_noise = None
         if "pigment_noise" in props:
-            self.pigment_noise = read_float(props, optional["pigment_noise"], "glaze")
-            self.pigment_noise_scale = read_int(props, "pigment_noise_scale", 8, 1, 4096, "glaze")
+            self.pigment_noise = read_float(props, self.PARAMS["pigment_noise"], "glaze")
+            self.pigment_noise_scale = options["pigment_noise_scale"]
         if "normal_noise" in props:
-            self.normal_noise = read_float(props, optional["normal_noise"], "glaze")
-            self.normal_noise_scale = read_int(props, "normal_noise_scale", 16, 1, 4096, "glaze")
-        self.noise_seed = read_int(props, "noise_seed", 0, 0, 2**31 - 1, "glaze")
+            self.normal_noise = read_float(props, self.PARAMS["normal_noise"], "glaze")
+            self.normal_noise_scale = options["normal_noise_scale"]
+        self.noise_seed = options["noise_seed"]
         self.m_components = [_GLOSSY, _DIFFUSE]
         self.m_flags = _GLOSSY | _DIFFUSE
         if self.pigment_noise is not None or self.normal_noise is not None:

@@ -1,4 +1,5 @@
-"""One declaration per fittable value: key, default, bounds, transform, unit and doc.
+"""One declaration per fittable value (key, default, bounds, transform, unit, doc), and per plugin
+its parameters and options (integers, choices): `PLUGINS`.
 
 Everything else (plugin defaults and validation, ``traverse`` keys, solver transforms, preset keys,
 exports) is derived from these declarations. Transforms are written against an array namespace
@@ -217,3 +218,108 @@ SCALE = ParamSpec(
 )
 #: Scene-side fittable values: `lights.scale` (every light, one factor) and `environment.scale`.
 EMITTER_PARAMS = {"lights": SCALE, "environment": SCALE}
+
+
+# Options and plugins ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class IntOption:
+    """A structural integer option of a plugin (not differentiable), in `[lower, upper]`."""
+
+    key: str
+    default: int
+    lower: int
+    upper: int
+    doc: str
+
+    def check(self, value, where: str) -> int:
+        """`value` as an int, or a `ValueError` naming `where` and the range."""
+        if isinstance(value, bool) or int(value) != value or not self.lower <= value <= self.upper:
+            raise ValueError(
+                f"{where}: {self.key} = {value!r}; use an integer in [{self.lower}, {self.upper}]"
+            )
+        return int(value)
+
+
+@dataclass(frozen=True)
+class ChoiceOption:
+    """A string option of a plugin; the first choice is the default."""
+
+    key: str
+    choices: tuple[str, ...]
+    doc: str
+
+    @property
+    def default(self) -> str:
+        return self.choices[0]
+
+    def check(self, value, where: str) -> str:
+        if value not in self.choices:
+            raise ValueError(
+                f"{where}: {self.key} = {value!r}; choose one of {', '.join(self.choices)}"
+            )
+        return value
+
+
+Option = IntOption | ChoiceOption
+
+
+@dataclass(frozen=True)
+class PluginDecl:
+    """What a plugin reads: its declared parameters and options.
+
+    - `optional`: parameters whose zero value means "off": the plugin builds nothing for them.
+    - `needs`: options that apply only when one of these parameters is on (noise scales without a
+      noise are not built).
+    """
+
+    name: str
+    params: dict[str, ParamSpec]
+    options: dict[str, Option]
+    optional: frozenset[str] = frozenset()
+    needs: dict[str, tuple[str, ...]] | None = None
+
+    def applies(self, option: str, params) -> bool:
+        """Whether `option` is built given the parameter keys `params` that are on."""
+        needed = (self.needs or {}).get(option)
+        return needed is None or any(p in params for p in needed)
+
+
+def _options(*options: Option) -> dict[str, Option]:
+    return {o.key: o for o in options}
+
+
+_SEED_MAX = 2**31 - 1
+GLAZE = PluginDecl(
+    "glaze",
+    {**GLAZE_PARAMS, **GLAZE_OPTIONAL_PARAMS},
+    _options(
+        ChoiceOption(
+            "coupling", ("paper", "reciprocal"), "how the specular and diffuse lobes combine"
+        ),
+        ChoiceOption("fresnel", ("schlick", "exact"), "Schlick's approximation or the exact one"),
+        IntOption("pigment_noise_scale", 8, 1, 4096, "noise cells per UV unit of the pigment"),
+        IntOption("normal_noise_scale", 16, 1, 4096, "noise cells per UV unit of the normal"),
+        IntOption("noise_seed", 0, 0, _SEED_MAX, "seed of both noises"),
+    ),
+    optional=frozenset(GLAZE_OPTIONAL_PARAMS),
+    needs={
+        "pigment_noise_scale": ("pigment_noise",),
+        "normal_noise_scale": ("normal_noise",),
+        "noise_seed": ("pigment_noise", "normal_noise"),
+    },
+)
+OREN_NAYAR = PluginDecl("oren_nayar", OREN_NAYAR_PARAMS, {})
+FBM = PluginDecl(
+    "fbm",
+    MASK_PARAMS,
+    _options(
+        IntOption("scale", 4, 1, 4096, "noise cells per UV unit (an integer: the noise tiles)"),
+        IntOption("octaves", 4, 1, 12, "octaves of the fbm"),
+        IntOption("seed", 0, 0, _SEED_MAX, "seed of the noise"),
+    ),
+)
+LAYERED = PluginDecl("layered", LAYERED_PARAMS, {}, optional=frozenset(LAYERED_PARAMS))
+#: The BSDFs a layer (or a whole material) can be, by type name.
+LAYER_PLUGINS = {decl.name: decl for decl in (GLAZE, OREN_NAYAR)}

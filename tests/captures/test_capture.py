@@ -194,7 +194,7 @@ def bad(tmp_path, **kw):
 
 
 def test_missing_file(tmp_path):
-    assert "views[0].image = 'none.exr' does not exist" in bad(
+    assert "views[0].image: 'none.exr' does not exist" in bad(
         tmp_path, views=[{"image": "none.exr", "camera": CAMERA}]
     )
 
@@ -247,8 +247,8 @@ def test_8bit_declared_linear_warns(tmp_path):
 @pytest.mark.parametrize(
     "exposure, message",
     [
-        ({"gain": 0.0}, "views[0].gain = 0.0 must be > 0"),
-        ({"gain": -1.0}, "views[0].gain = -1.0 must be > 0"),
+        ({"gain": 0.0}, "views[0].gain: got 0.0; should be greater than 0"),
+        ({"gain": -1.0}, "views[0].gain: got -1.0; should be greater than 0"),
         ({"gain": 1.0, "exposure_ev": 1.0}, "and exposure_ev both given"),
     ],
 )
@@ -277,6 +277,6 @@ def test_path_escaping_the_folder(tmp_path):
 
 
 def test_unknown_key(tmp_path):
-    assert "unknown key(s) exposure in [views[0]]" in bad(
+    assert "views[0].exposure: unknown key; known: image, mask, exposure_ev, gain, camera" in bad(
         tmp_path, views=[{"image": "v0.exr", "exposure": 1.0, "camera": CAMERA}]
     )

@@ -199,9 +199,9 @@ def test_obj_and_envmap_paths_resolve_against_the_file(tmp_path):
 @pytest.mark.parametrize(
     "change, message",
     [
-        ({"geometry": "cube"}, "scene.geometry.file = 'cube' does not exist"),
+        ({"geometry": "cube"}, "scene.geometry.file: 'cube' does not exist"),
         ({"geometry": {"type": "cup", "wall": 0.5}}, "scene.geometry: cup: wall = 0.5"),
-        ({"cameras": []}, "needs at least one [[scene.cameras]]"),
+        ({"cameras": []}, "scene.cameras: got []; should have at least 1 item"),
         (
             {
                 "cameras": [
@@ -228,7 +228,7 @@ def test_obj_and_envmap_paths_resolve_against_the_file(tmp_path):
                     }
                 ]
             },
-            "needs 'ortho_width'",
+            "scene.cameras[0].ortho_width: missing; add it",
         ),
         (
             {"lights": [{"center": [1, 1, 1], "target": [0, 0, 0], "size": [1, 1]}]},
@@ -260,11 +260,11 @@ def test_obj_and_envmap_paths_resolve_against_the_file(tmp_path):
                     }
                 ]
             },
-            "temperature = 500 K is outside",
+            "scene.lights[0].temperature: 500 K is outside",
         ),
         (
             {"lights": [{"type": "spot", "position": [0, 0, 1]}]},
-            "choose rectangle, point or directional",
+            "scene.lights[0].type: got 'spot'; choose one of rectangle, point, directional",
         ),
         (
             {
@@ -278,10 +278,10 @@ def test_obj_and_envmap_paths_resolve_against_the_file(tmp_path):
                     }
                 ]
             },
-            "unknown key(s) colour",
+            "scene.lights[0].colour: unknown key; known: color, temperature, type",
         ),
         ({"lights": [], "environment": [0, 0, 0]}, "the scene has no light"),
-        ({"integrator": "bdpt"}, "scene.integrator = 'bdpt'; choose one of prb, path"),
+        ({"integrator": "bdpt"}, "scene.integrator: got 'bdpt'; choose one of prb, path"),
     ],
 )
 def test_scene_errors_name_the_key(tmp_path, change, message):

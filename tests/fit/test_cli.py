@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from cli_run import run_cli
 
-from captures import CaptureError
+from captures import InputError
 from captures.images import read_image, srgb_decode
 from fit.config import load_render_config
 
@@ -33,7 +33,7 @@ def small_config(tmp_path: Path, **material) -> Path:
 
 def test_bundled_config_loads():
     cfg = load_render_config(DEFAULT)
-    assert cfg.material["type"] == "glaze" and cfg.material["roughness"] == 0.0625
+    assert cfg.material.bsdf["type"] == "glaze" and cfg.material.bsdf["roughness"] == 0.0625
     assert len(cfg.scene.cameras) == 1 and len(cfg.scene.lights) == 2
 
 
@@ -55,17 +55,17 @@ def test_render_writes_exr_and_png(tmp_path):
     [
         (
             ("[material]\n", "[material]\nroughnes = 0.2\n"),
-            "unknown key material.roughnes for glaze",
+            "material.roughnes: unknown key for glaze",
         ),
         (("ior = 1.52", "ior = 0.9"), "material: ior = 0.9 is outside its bounds [1.01, 3.0]"),
-        (('fresnel = "schlick"', 'fresnel = "fast"'), "material.fresnel = 'fast'; choose one of"),
-        (("fov_x_deg = 36.0", "fov = 36.0"), "unknown key(s) fov in [scene.cameras[0]]"),
-        (("spp = 256", "spp = 0"), "render.spp = 0 must be a positive integer"),
+        (('fresnel = "schlick"', 'fresnel = "fast"'), "material: fresnel = 'fast'; choose one of"),
+        (("fov_x_deg = 36.0", "fov = 36.0"), "scene.cameras[0].fov: unknown key"),
+        (("spp = 256", "spp = 0"), "render.spp: got 0; should be greater than"),
         (
             ('geometry = "sphere"', 'geometry = "cup.obj"'),
-            "scene.geometry.file = 'cup.obj' does not exist",
+            "scene.geometry.file: 'cup.obj' does not exist",
         ),
-        (("[render]", "[rendr]"), "unknown table(s) rendr"),
+        (("[render]", "[rendr]"), "rendr: unknown key"),
     ],
 )
 def test_config_errors_name_file_and_key(tmp_path, edit, message):
@@ -73,7 +73,7 @@ def test_config_errors_name_file_and_key(tmp_path, edit, message):
     assert edit[0] in text
     path = tmp_path / "bad.toml"
     path.write_text(text.replace(edit[0], edit[1], 1))
-    with pytest.raises(CaptureError) as err:  # ConfigError for [material], [render]
+    with pytest.raises(InputError) as err:  # ConfigError for [material], [render]
         load_render_config(path)
     assert str(path) in str(err.value) and message in str(err.value)
 
@@ -88,16 +88,16 @@ def test_cli_bad_config_writes_nothing(tmp_path):
 
 
 def test_missing_and_invalid_files(tmp_path):
-    with pytest.raises(CaptureError, match=r"none\.toml: no such file"):
+    with pytest.raises(InputError, match=r"none\.toml: no such file"):
         load_render_config(tmp_path / "none.toml")
     (tmp_path / "broken.toml").write_text("[scene\n")
-    with pytest.raises(CaptureError, match=r"broken\.toml: not valid TOML"):
+    with pytest.raises(InputError, match=r"broken\.toml: not valid TOML"):
         load_render_config(tmp_path / "broken.toml")
 
 
 def test_bench_table_runs():
     """The benchmark command's table is complete (its timings are reported, never asserted)."""
-    from fit.bench import bsdf_speed_table
+    from fit.commands.bench import bsdf_speed_table
 
     table = bsdf_speed_table(spp=1, repeats=1)
     assert [row[0] for row in table.rows][:2] == ["principled", "glaze paper/schlick"]

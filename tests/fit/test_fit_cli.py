@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 from cli_run import run_cli
 
+from fit.commands.synth import synthesize
 from fit.config import load_render_config
-from fit.synth import synthesize
 
 ROOT = Path(__file__).resolve().parents[2]
 

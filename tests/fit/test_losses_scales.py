@@ -13,11 +13,9 @@ import pytest
 
 from captures.capture import Capture, View
 from fit.config import load_render_config
-from fit.free import resolve
-from fit.render import render
-from fit.scene import scene_dict
-from fit.schedule import Phase
-from fit.solve import Problem, _shape, levenberg_marquardt, run_schedule
+from fit.material import resolve
+from fit.render import render, scene_dict
+from fit.solvers import Phase, Problem, run_schedule, shape_loss, solve
 from materials.params import BOUND_MARGIN, SCALE
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -52,12 +50,12 @@ def test_robust_residuals_are_the_loss(loss):
         "huber": jnp.where(jnp.abs(x) <= 1, x**2 / 2, jnp.abs(x) - 0.5),
         "cauchy": jnp.log1p(x**2) / 2,
     }[loss] * 0.5**2
-    psi = _shape(d, loss, 0.5)
+    psi = shape_loss(d, loss, 0.5)
     np.testing.assert_allclose(psi**2 / 2, rho, rtol=1e-4, atol=1e-7)
     assert np.all(np.diff(np.asarray(psi)) > 0)  # monotone: no sign flips
-    slope = jax.grad(lambda d: _shape(d, loss, 0.5))(0.0)
+    slope = jax.grad(lambda d: shape_loss(d, loss, 0.5))(0.0)
     assert float(slope) == pytest.approx(1.0)
-    assert np.all(np.isfinite(jax.vmap(jax.grad(lambda d: _shape(d, loss, 0.5)))(d)))
+    assert np.all(np.isfinite(jax.vmap(jax.grad(lambda d: shape_loss(d, loss, 0.5)))(d)))
 
 
 def test_robust_loss_ignores_outliers():
@@ -69,7 +67,10 @@ def test_robust_loss_ignores_outliers():
     image[garbage] = 2.0
     free = resolve(cfg.material, ["glaze.pigment"])
     start = {"glaze.pigment": [0.3, 0.3, 0.3]}
-    schedule = (Phase("adam", 60, 8, lr=0.1), Phase("adam", 30, 32, lr=0.02, average=0.5))
+    schedule = (
+        Phase(solver="adam", steps=60, spp=8, lr=0.1),
+        Phase(solver="adam", steps=30, spp=32, lr=0.02, average=0.5),
+    )
     errors = {}
     for loss in ("l2", "huber", "cauchy"):
         result = run_schedule(Problem(capture, cfg.material, free, loss=loss), start, schedule)
@@ -122,7 +123,7 @@ def test_emitter_scales_are_recovered():
         capture, cfg.material, resolve(cfg.material, ["lights.scale", "environment.scale"])
     )
     start = {"lights.scale": 1.0, "environment.scale": 1.0}
-    result = levenberg_marquardt(problem, problem.unconstrained(start), spp=128, seed=1)
+    result = solve("lm", problem, problem.unconstrained(start), steps=30, spp=128, seed=1)
     assert result.values["lights.scale"] == pytest.approx(1.6, rel=0.04)
     assert result.values["environment.scale"] == pytest.approx(0.5, rel=0.04)
 

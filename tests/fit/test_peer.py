@@ -11,8 +11,7 @@ import pytest
 
 from captures import load_peer_scene
 from captures.images import read_image
-from fit.render import render
-from fit.scene import coverage_dict, scene_dict
+from fit.render import coverage_dict, render, scene_dict
 
 ROOT = Path(__file__).resolve().parents[2]
 SPP = 1024
@@ -78,16 +77,15 @@ def test_wrong_lobe_width_is_caught(peer):
 
 def fit_peer(config: str):
     """(result, truth) of a bundled peer-sphere fit config with its schedule."""
-    from fit.fitconfig import load_fit_config
-    from fit.free import resolve
-    from fit.inspect import open_capture
-    from fit.run import start_values
-    from fit.solve import Problem, run_schedule
+    from captures import open_capture
+    from fit.config import load_fit_config
+    from fit.material import resolve, start_values
+    from fit.solvers import Problem, run_schedule
 
     cfg = load_fit_config(ROOT / "configs" / config)
     capture = open_capture(cfg.capture)
     free = resolve(cfg.material, cfg.free)
-    start = start_values(cfg.material, free)
+    start = start_values(free)
     return run_schedule(Problem(capture, cfg.material, free), start, cfg.phases), capture.truth
 
 

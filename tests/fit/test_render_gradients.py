@@ -12,8 +12,7 @@ import numpy as np
 import pytest
 
 from fit.config import load_render_config
-from fit.render import render
-from fit.scene import MATERIAL_PREFIX, scene_dict
+from fit.render import MATERIAL_PREFIX, render, scene_dict
 
 ROOT = Path(__file__).resolve().parents[2]
 CLAY = {

@@ -12,9 +12,9 @@ import pytest
 
 from captures import parse_scene
 from fit.config import load_render_config
-from fit.material import ConfigError, material_dict
-from fit.render import render
-from fit.scene import coverage_dict, material_keys, scene_dict
+from fit.errors import ConfigError
+from fit.material import material_dict
+from fit.render import coverage_dict, material_keys, render, scene_dict
 
 ROOT = Path(__file__).resolve().parents[2]
 CUP = ROOT / "configs" / "cup.toml"
@@ -101,19 +101,19 @@ def test_bottom_mask_is_dropped_with_the_bottom_layer():
     [
         (
             lambda m: layer(m, "lime").pop("mask"),
-            "layer 'lime' needs a [material.layers.mask] table",
+            "layer 'lime': needs a [material.layers.mask] table",
         ),
-        (lambda m: layer(m, "lime")["mask"].update(scale=2.5), "material.lime.mask.scale = 2.5"),
+        (lambda m: layer(m, "lime")["mask"].update(scale=2.5), "material.lime.mask: scale = 2.5"),
         (lambda m: layer(m, "lime")["mask"].update(threshold=2.0), "threshold = 2.0 is outside"),
         (
             lambda m: layer(m, "lime")["mask"].update(texture="none.png"),
-            "'none.png' does not exist",
+            "'none.png' is not a file",
         ),
-        (lambda m: layer(m, "glaze").update(roughnes=0.1), "unknown key material.glaze.roughnes"),
-        (lambda m: layer(m, "glaze").update(type="plastic"), "material.glaze.type = 'plastic'"),
+        (lambda m: layer(m, "glaze").update(roughnes=0.1), "material.glaze.roughnes: unknown key"),
+        (lambda m: layer(m, "glaze").update(type="plastic"), "material.glaze.type: got 'plastic'"),
         (lambda m: layer(m, "stain").update(name="lime"), "'lime' is used twice"),
         (lambda m: m.update(bump=1.0), "bump = 1.0 is outside"),
-        (lambda m: m.update(bumps=1.0), "unknown key(s) bumps in [material]"),
+        (lambda m: m.update(bumps=1.0), "[material]: has unknown key(s) bumps"),
     ],
 )
 def test_material_errors_name_the_key(edit, message):

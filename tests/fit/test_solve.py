@@ -13,14 +13,10 @@ import numpy as np
 import pytest
 
 from captures.capture import Capture, View
-from fit.bridge import make_render
 from fit.config import load_render_config
-from fit.free import resolve, to_physical, to_unconstrained
-from fit.render import render
-from fit.renderer import GRAD_SEED_OFFSET, Renderer
-from fit.scene import scene_dict
-from fit.schedule import Phase
-from fit.solve import Problem, adam, bfgs, levenberg_marquardt, run_schedule, uncertainty
+from fit.material import resolve, to_physical, to_unconstrained
+from fit.render import GRAD_SEED_OFFSET, Renderer, make_render, render, scene_dict
+from fit.solvers import Phase, Problem, run_schedule, solve, uncertainty
 
 ROOT = Path(__file__).resolve().parents[2]
 KEYS = ["glaze.pigment", "glaze.roughness", "glaze.ior"]
@@ -56,7 +52,7 @@ def truth_vector():
 
 def test_free_parameters_resolve_and_round_trip(problem):
     free = problem.free
-    assert [f.traverse_key for f in free] == [
+    assert [f.traverse for f in free] == [
         "object.bsdf.pigment.value",
         "object.bsdf.roughness",
         "object.bsdf.ior",
@@ -96,7 +92,7 @@ def test_bridge_gradient_equals_mitsubas_own(problem):
     renderer._set(0, x, grad=True)
     image = mi.render(scene, params, spp=256, seed=5)
     dr.backward(dr.mean(image[..., :3]))
-    own = np.concatenate([np.ravel(dr.grad(params[f.traverse_key])) for f in problem.free])
+    own = np.concatenate([np.ravel(dr.grad(params[f.traverse])) for f in problem.free])
     renderer._set(0, x)  # drop the AD state
     for grad in grads:
         np.testing.assert_allclose(grad, own, rtol=0.1, atol=0.1 * np.abs(own).max())
@@ -135,15 +131,15 @@ def test_render_does_not_recompile(problem):
 
 def test_levenberg_marquardt_recovers_the_sphere(problem):
     start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.2, "glaze.ior": 1.3}
-    result = levenberg_marquardt(problem, to_unconstrained(problem.free, start), spp=32, seed=1)
+    result = solve("lm", problem, to_unconstrained(problem.free, start), steps=30, spp=32, seed=1)
     check(result.values)
 
 
 #: The default schedule's shape at this size: Adam at half resolution, then an averaged polish
 #: (longer at fewer spp: one view leaves alpha and ior a long, noisy valley).
 SCHEDULE = (
-    Phase("adam", 80, 8, downscale=2, lr=0.1),
-    Phase("adam", 120, 16, lr=0.03, average=0.5),
+    Phase(solver="adam", steps=80, spp=8, downscale=2, lr=0.1),
+    Phase(solver="adam", steps=120, spp=16, lr=0.03, average=0.5),
 )
 
 
@@ -186,7 +182,7 @@ def test_levenberg_marquardt_from_a_bound(problem):
     """LM alone from ior's lower bound: it creeps off the flat end of the sigmoid (51 steps)."""
     start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.2, "glaze.ior": 1.01}
     u0 = problem.unconstrained(start)
-    lm = levenberg_marquardt(problem, u0, spp=32, seed=1, max_steps=80, rtol=1e-7, atol=1e-9)
+    lm = solve("lm", problem, u0, steps=80, spp=32, seed=1, rtol=1e-7, atol=1e-9)
     check(lm.values)
 
 
@@ -249,7 +245,7 @@ def test_per_view_gains_are_recovered():
     free = resolve(cfg.material, ["glaze.pigment"])
     problem = Problem(capture, cfg.material, free, gains=True)
     start = {"glaze.pigment": [0.3, 0.3, 0.3]}
-    result = levenberg_marquardt(problem, problem.unconstrained(start), spp=128, seed=1)
+    result = solve("lm", problem, problem.unconstrained(start), steps=30, spp=128, seed=1)
     np.testing.assert_allclose(result.values["gain.v1"], gain, rtol=0.03)
     np.testing.assert_allclose(result.values["glaze.pigment"], TRUTH["glaze.pigment"], atol=0.02)
     std, corr, _ = uncertainty(problem, result.u, spp=32, seed=2)
@@ -264,7 +260,7 @@ def test_adam_gains_are_unbiased_at_low_spp():
     cfg, capture = two_views(gain)
     problem = Problem(capture, cfg.material, resolve(cfg.material, ["glaze.pigment"]), gains=True)
     u0 = problem.unconstrained({"glaze.pigment": [0.3, 0.3, 0.3]})
-    result = adam(problem, u0, steps=100, spp=16, lr=0.05, seed=0, average=0.5)
+    result = solve("adam", problem, u0, steps=100, spp=16, lr=0.05, seed=0, average=0.5)
     np.testing.assert_allclose(result.values["gain.v1"], gain, rtol=0.06)
     np.testing.assert_allclose(result.values["glaze.pigment"], TRUTH["glaze.pigment"], atol=0.02)
 
@@ -272,7 +268,7 @@ def test_adam_gains_are_unbiased_at_low_spp():
 def test_independent_gain_render_keeps_value_and_cost(monkeypatch):
     """The independent render changes the gains' derivatives only: the residual's value is the
     same, the material's gradient is the same, and it costs one primal render (no reverse pass)."""
-    from fit.solve import _residuals
+    from fit.solvers import residuals
 
     cfg, capture = two_views(np.array([1.25, 0.9, 1.0], np.float32))
     problem = Problem(capture, cfg.material, resolve(cfg.material, ["glaze.pigment"]), gains=True)
@@ -291,7 +287,7 @@ def test_independent_gain_render_keeps_value_and_cost(monkeypatch):
     seed = jnp.int32(5)
 
     def loss(independent_gains):
-        residual = _residuals(problem, render, independent_gains=independent_gains)
+        residual = residuals(problem, render, independent_gains=independent_gains)
         return jax.value_and_grad(lambda u: 0.5 * jnp.sum(residual(u, seed) ** 2))(u)
 
     (v_same, g_same), (v_indep, g_indep) = loss(False), loss(True)
@@ -314,9 +310,12 @@ def test_non_finite_steps_are_rejected(problem, monkeypatch):
     monkeypatch.setattr(renderer, "render", every_third_is_nan)
     start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.2, "glaze.ior": 1.3}
     u0 = problem.unconstrained(start)
-    result = adam(problem, u0, 9, 4, 0.1, seed=0)
+    result = solve("adam", problem, u0, steps=9, spp=4, lr=0.1, seed=0)
     assert np.isnan(result.history).sum() == 3
+    assert result.reports[0].rejected == 3 and result.reports[0].outcome == "step_limit"
     assert np.all(np.isfinite(result.u)) and not np.array_equal(result.u, u0)
     monkeypatch.setattr(renderer, "render", lambda v, s, spp: real(v, s, spp) * np.nan)
-    for solver in (levenberg_marquardt, bfgs):
-        np.testing.assert_array_equal(solver(problem, u0, spp=4, max_steps=3).u, u0)
+    for solver in ("lm", "bfgs"):
+        result = solve(solver, problem, u0, steps=3, spp=4)
+        np.testing.assert_array_equal(result.u, u0)
+        assert result.reports[0].outcome == "diverged", solver  # said, never silent

@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 from cli_run import run_cli
 
+from captures import open_capture
 from captures.capture import load_capture
 from captures.images import read_image
+from fit.commands.inspect import contact_sheet, iou, silhouettes
+from fit.commands.synth import Degradation, synthesize
 from fit.config import load_render_config
-from fit.inspect import contact_sheet, iou, open_capture, silhouettes
-from fit.synth import Degradation, synthesize
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -45,8 +46,7 @@ def test_synth_round_trip(tmp_path):
     assert view.gain != 1.0  # a random exposure was applied, recorded, and undone on load
     import mitsuba as mi
 
-    from fit.render import render
-    from fit.scene import scene_dict
+    from fit.render import render, scene_dict
 
     again = render(mi.load_dict(scene_dict(scene, cfg.material, 0, 16)), 16, seed=3)
     np.testing.assert_allclose(view.image, again, rtol=1e-4, atol=1e-6)
@@ -110,8 +110,7 @@ def test_diligent_silhouette_and_shading_match(shared_data):
     correlates with the photo (a mirrored light frame would not)."""
     import mitsuba as mi
 
-    from fit.render import render
-    from fit.scene import scene_dict
+    from fit.render import render, scene_dict
 
     capture = open_capture(shared_data / "diligent-ball", downscale=4)
     coverage = silhouettes(capture, spp=16)

@@ -12,12 +12,9 @@ from captures.capture import Capture, View
 from captures.images import write_image
 from captures.scene import Camera
 from fit.config import load_render_config
-from fit.free import resolve
-from fit.material import material_dict
-from fit.render import render
-from fit.scene import scene_dict
-from fit.schedule import Phase
-from fit.solve import Problem, run_schedule
+from fit.material import material_dict, resolve
+from fit.render import render, scene_dict
+from fit.solvers import Phase, Problem, run_schedule
 
 ROOT = Path(__file__).resolve().parents[2]
 SIZE = 16
@@ -75,7 +72,7 @@ def test_mask_texture_is_recovered_in_reverse_mode(tmp_path):
     assert free[0].shape == (SIZE, SIZE, 1) and free[0].size == SIZE * SIZE
     problem = Problem(target, start_material, free)
     start = {"glaze.mask.texture": np.full(SIZE * SIZE, 0.5).tolist()}
-    result = run_schedule(problem, start, (Phase("adam", 50, 8, lr=0.2),), seed=0)
+    result = run_schedule(problem, start, (Phase(solver="adam", steps=50, spp=8, lr=0.2),), seed=0)
     fitted = np.asarray(result.values["glaze.mask.texture"]).reshape(SIZE, SIZE)
     truth = truth_texture()[..., 0]
     band = slice(4, 12)

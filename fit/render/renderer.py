@@ -11,8 +11,8 @@ import numpy as np
 
 from captures.capture import Capture
 
-from .free import Free
-from .scene import scene_dict
+from ..material import Free
+from .scene import MATERIAL_PREFIX, scene_dict
 
 
 def _primal(scene, seed, spp: int):
@@ -29,7 +29,8 @@ _EMITTER_KEYS = {
 def _targets(f: Free, params, view: str) -> list[str]:
     """The traverse keys `f` sets in one view's scene."""
     if f.emitter is None:
-        keys = [f.traverse_key] if f.traverse_key in params else []
+        key = MATERIAL_PREFIX + f.traverse
+        keys = [key] if key in params else []
     else:
         keys = [k for k in params.keys() if _EMITTER_KEYS[f.emitter].fullmatch(k)]
     if not keys:

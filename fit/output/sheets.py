@@ -1,4 +1,5 @@
-"""Pictures of a fit: each view's photo, the render at the fitted values, and where they differ."""
+"""Pictures of a fit: each view's photo, the render at the fitted values and where they differ;
+the loss per phase."""
 
 from __future__ import annotations
 
@@ -8,9 +9,9 @@ import numpy as np
 
 from captures.images import srgb_encode
 
+from ..material import to_physical
+from ..solvers import Problem, Result
 from .figures import pyplot, save_figure
-from .free import to_physical
-from .solve import Problem
 
 
 def comparison_sheet(
@@ -49,3 +50,22 @@ def comparison_sheet(
             ax.axis("off")
     fig.tight_layout()
     return save_figure(fig, out)
+
+
+def loss_plot(result: Result, phases, path: Path) -> Path:
+    """The loss per step, one colour per phase (phases at another resolution or loss scale are
+    not comparable in level; LM and BFGS phases show their final loss as one point)."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(6, 3.2))
+    begin = 0
+    for k, (phase, end) in enumerate(zip(phases, result.phase_ends, strict=True)):
+        steps = np.arange(begin, end)
+        label = f"{k + 1}: {phase.describe()}"
+        ax.semilogy(steps, result.history[begin:end], "o" if end - begin == 1 else "-", label=label)
+        begin = end
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss (weighted)")
+    ax.set_title("per phase at its own resolution and spp", fontsize=8)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    return save_figure(fig, path, dpi=100)

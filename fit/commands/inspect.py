@@ -7,26 +7,11 @@ from pathlib import Path
 import mitsuba as mi
 import numpy as np
 
-from captures import CaptureError
-from captures.capture import Capture, load_capture
+from captures.capture import Capture
 from captures.images import srgb_encode
-from captures.importers import diligent_capture, peer_capture
 
-from .figures import pyplot, save_figure
-from .render import render
-from .scene import coverage_dict
-
-
-def open_capture(path: str | Path, downscale: int = 1) -> Capture:
-    """A capture manifest (file or folder), a peer `scene.json`, or a DiLiGenT folder."""
-    path = Path(path)
-    if path.name == "scene.json":
-        return peer_capture(path)
-    if path.is_dir() and (path / "filenames.txt").exists():
-        return diligent_capture(path, downscale)
-    if path.is_dir() and not (path / "capture.toml").exists():
-        raise CaptureError(f"{path}: no capture.toml, scene.json or DiLiGenT files in the folder")
-    return load_capture(path)
+from ..output import pyplot, save_figure
+from ..render import coverage_dict, render
 
 
 def silhouettes(capture: Capture, spp: int = 16) -> list[np.ndarray]:

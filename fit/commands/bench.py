@@ -12,11 +12,12 @@ from pathlib import Path
 import mitsuba as mi
 import numpy as np
 
-from .config import load_render_config
-from .scene import scene_dict
+from ..config import load_render_config
+from ..render import scene_dict
 
-CONFIGS = Path(__file__).resolve().parent.parent / "configs"
-DEFAULT_SCENE = CONFIGS / "glazed-sphere.toml"
+#: The scene the speed tables render (relative to the working directory: the repository's root).
+DEFAULT_SCENE = Path("configs/glazed-sphere.toml")
+CUP_SCENE = Path("configs/cup.toml")
 
 
 @dataclass
@@ -70,7 +71,7 @@ def bsdf_speed_table(spp: int = 64, repeats: int = 7, progress=None) -> Table:
     a diffuse base), `oren_nayar` with `diffuse`.
     """
     cfg = load_render_config(DEFAULT_SCENE)
-    glaze = cfg.material
+    glaze = cfg.material.bsdf
     pigment = glaze["pigment"]
     principled = {
         "type": "principled",
@@ -93,15 +94,7 @@ def bsdf_speed_table(spp: int = 64, repeats: int = 7, progress=None) -> Table:
     scenes = {
         name: mi.load_dict(scene_dict(cfg.scene, b, 0, spp)) for name, (b, _) in bsdfs.items()
     }
-    task = progress.add_task("bench: BSDF speed", total=repeats * len(scenes)) if progress else None
-    times: dict[str, list[float]] = {name: [] for name in scenes}
-    for scene in scenes.values():  # first renders compile kernels: not timed
-        _timed(scene, spp, 0)
-    for i in range(repeats):  # interleave so that drift hits all alike
-        for name, scene in scenes.items():
-            times[name].append(_timed(scene, spp, i + 1))
-            if progress:
-                progress.advance(task)
+    times = _interleaved(scenes, spp, repeats, progress, "bench: BSDF speed")
     median = {name: statistics.median(t) for name, t in times.items()}
     cam = cfg.scene.cameras[0]
     rows = [
@@ -126,7 +119,8 @@ def bsdf_speed_table(spp: int = 64, repeats: int = 7, progress=None) -> Table:
 
 
 def _interleaved(scenes: dict, spp: int, repeats: int, progress, label: str) -> dict[str, list]:
-    """Times of `repeats` renders of each scene, interleaved, after an untimed warm-up each."""
+    """Times of `repeats` renders of each scene, interleaved (so that drift hits all alike), after
+    an untimed warm-up each (first renders compile kernels)."""
     task = progress.add_task(label, total=repeats * len(scenes)) if progress else None
     times: dict[str, list[float]] = {name: [] for name in scenes}
     for scene in scenes.values():
@@ -142,10 +136,10 @@ def _interleaved(scenes: dict, spp: int, repeats: int, progress, label: str) -> 
 def cup_speed_table(spp: int = 64, repeats: int = 5, size: int = 256, progress=None) -> Table:
     """Render time of the paper's cup (configs/cup.toml) at `size`^2, and of each of its layers
     alone as the whole material: the stack's cost relative to its most expensive layer."""
-    cfg = load_render_config(CONFIGS / "cup.toml")
+    cfg = load_render_config(CUP_SCENE)
     camera = dataclasses.replace(cfg.scene.cameras[0], width=size, height=size)
     scene = dataclasses.replace(cfg.scene, cameras=(camera,))
-    stack = cfg.material
+    stack = cfg.material.bsdf
     materials = {"cup: 4-layer stack": stack}
     materials |= {f"{name} alone": stack[name] for name in stack["layers"].split(",")}
     scenes = {name: mi.load_dict(scene_dict(scene, m, 0, spp)) for name, m in materials.items()}
@@ -176,29 +170,29 @@ def cup_speed_table(spp: int = 64, repeats: int = 5, size: int = 256, progress=N
 def fit_schedules() -> dict:
     """Named schedules compared by `fit_trade_table`: the default, cheaper and dearer variants,
     the plain Adam loop of ../shared/FACTS.md, and the LM and BFGS polishes."""
-    from .schedule import DEFAULT_SCHEDULE, Phase
+    from ..solvers import DEFAULT_SCHEDULE, Phase
 
     first = DEFAULT_SCHEDULE[0]
     return {
         "default": DEFAULT_SCHEDULE,
         "default, half the steps": (
-            dataclasses.replace(first, steps=50),
-            Phase("adam", 30, 32, lr=0.02, average=0.5),
+            first.model_copy(update={"steps": 50}),
+            Phase(solver="adam", steps=30, spp=32, lr=0.02, average=0.5),
         ),
         "default, full resolution throughout": (
-            dataclasses.replace(first, downscale=1),
+            first.model_copy(update={"downscale": 1}),
             *DEFAULT_SCHEDULE[1:],
         ),
         "plain Adam: 200 x 16 spp + 100 x 64 spp": (
-            Phase("adam", 200, 16, lr=0.05),
-            Phase("adam", 100, 64, lr=0.01, average=0.5),
+            Phase(solver="adam", steps=200, spp=16, lr=0.05),
+            Phase(solver="adam", steps=100, spp=64, lr=0.01, average=0.5),
         ),
-        "Adam, then LM (shared seed, 64 spp)": (first, Phase("lm", 6, 64)),
+        "Adam, then LM (shared seed, 64 spp)": (first, Phase(solver="lm", steps=6, spp=64)),
         "Adam, then LM (128 spp, decorrelated 16-spp Jacobian)": (
             first,
-            Phase("lm", 6, 128, jacobian_spp=16),
+            Phase(solver="lm", steps=6, spp=128, jacobian_spp=16),
         ),
-        "Adam, then BFGS (shared seed, 64 spp)": (first, Phase("bfgs", 20, 64)),
+        "Adam, then BFGS (shared seed, 64 spp)": (first, Phase(solver="bfgs", steps=20, spp=64)),
     }
 
 
@@ -206,16 +200,16 @@ def fit_trade_table(config: Path, names: list[str] | None = None, progress=None)
     """Wall time and error against the known values of each schedule on one fit config (its
     capture must carry the truth): the speed/accuracy trade of the solver, spp, resolution and
     step choices. Each schedule starts from the config's material with the config's seed."""
-    from .fitconfig import load_fit_config
-    from .free import resolve
-    from .inspect import open_capture
-    from .run import start_values
-    from .solve import Problem, run_schedule
+    from captures import open_capture
+
+    from ..config import load_fit_config
+    from ..material import resolve, start_values
+    from ..solvers import Problem, run_schedule
 
     cfg = load_fit_config(config)
     capture = open_capture(cfg.capture, cfg.downscale)
     free = resolve(cfg.material, cfg.free)
-    start = start_values(cfg.material, free)
+    start = start_values(free)
     missing = [f.key for f in free if f.key not in capture.truth]
     if missing:
         raise ValueError(f"{config}: the capture has no known value for {', '.join(missing)}")
@@ -223,7 +217,7 @@ def fit_trade_table(config: Path, names: list[str] | None = None, progress=None)
     names = names or list(schedules)
     task = progress.add_task("bench: fit schedules", total=2 * len(names)) if progress else None
     for name in names:  # untimed warm-up: one step per phase compiles every kernel a run needs
-        short = tuple(dataclasses.replace(p, steps=1) for p in schedules[name])
+        short = tuple(p.model_copy(update={"steps": 1}) for p in schedules[name])
         problem = Problem(capture, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)
         run_schedule(problem, start, short, cfg.seed, None, cfg.uncertainty_spp)
         if progress:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from captures.files import atomic_path
+
 
 def pyplot():
     """`matplotlib.pyplot` on the Agg backend (no display needed)."""
@@ -19,12 +21,9 @@ def save_figure(fig, out: Path, dpi: int = 110) -> Path:
     """Save `fig` to `out` through a temporary file (a reader never sees half a PNG), then close
     it."""
     plt = pyplot()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    partial = out.with_name(f".{out.name}.partial.png")
     try:
-        fig.savefig(partial, dpi=dpi)
-        partial.replace(out)
+        with atomic_path(out) as partial:
+            fig.savefig(partial, dpi=dpi, format=out.suffix.lstrip(".") or "png")
     finally:
         plt.close(fig)
-        partial.unlink(missing_ok=True)
     return out

@@ -1,0 +1,104 @@
+"""The config models and their loaders (see the package's docstring for the files)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field
+
+from captures import Scene, parse_scene
+from captures.model import NonNegativeInt, PositiveFloat, PositiveInt, StrictModel, parse_model
+
+from ..errors import ConfigError
+from ..material import Material, load_material, read_toml
+from ..solvers.schedule import DEFAULT_SCHEDULE, Phase
+
+
+class RenderSettings(StrictModel):
+    spp: PositiveInt = 64
+    """Samples per pixel of each view."""
+
+
+class _RenderFile(StrictModel):
+    scene: dict[str, Any]
+    """The scene: geometry, cameras, lights, environment (captures/schema.py)."""
+    material: dict[str, Any] | str
+    """The material table, or the name of a preset file (relative to the config)."""
+    render: RenderSettings = RenderSettings()
+    """How to render."""
+
+
+class FitSettings(StrictModel):
+    free: list[str] = Field(min_length=1)
+    """The parameter keys the fit moves, e.g. ["glaze.roughness", "lime.mask.threshold"]."""
+    seed: NonNegativeInt = 0
+    """Seed of the renders (phase k uses seed + k)."""
+    gains: bool = False
+    """A free RGB gain per view but the first (unknown exposure / white balance)."""
+    loss: Literal["l2", "huber", "cauchy"] = "l2"
+    """How a pixel's difference counts: l2, or robust huber / cauchy (biased under noise)."""
+    loss_scale: PositiveFloat | None = None
+    """Robust losses: differences beyond this count less (default: 0.1 x the photos' mean)."""
+    uncertainty_spp: PositiveInt = 64
+    """Samples per pixel of the final Jacobian render that gives the uncertainty."""
+    downscale: PositiveInt = 1
+    """Area-average the photos by this factor before anything (the cameras follow)."""
+    phases: list[Phase] = Field(default_factory=lambda: list(DEFAULT_SCHEDULE), min_length=1)
+    """The schedule: solver phases run in turn (absent: the default schedule)."""
+
+
+class _FitFile(StrictModel):
+    capture: str
+    """The capture: a folder with capture.toml, a peer scene.json or a DiLiGenT folder."""
+    material: dict[str, Any] | str
+    """The starting material: a table, or the name of a preset file (relative to the config)."""
+    fit: FitSettings
+    """What is free and how to solve."""
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """A loaded render config: the scene, the built material and the sample count."""
+
+    path: Path
+    scene: Scene
+    material: Material
+    spp: int
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """A loaded fit config: the capture's path, the built starting material and the settings."""
+
+    path: Path
+    capture: Path
+    material: Material
+    settings: FitSettings
+
+    def __getattr__(self, name):  # cfg.free, cfg.phases, ...: the [fit] settings
+        if name in FitSettings.model_fields:
+            return getattr(self.settings, name)
+        raise AttributeError(name)
+
+
+def load_render_config(path: str | Path) -> RenderConfig:
+    """A render config from its file; a one-line `InputError` naming the file and key."""
+    path = Path(path)
+    doc = parse_model(_RenderFile, read_toml(path), path)
+    material = load_material(doc.material, path)
+    return RenderConfig(path, parse_scene(doc.scene, path), material, doc.render.spp)
+
+
+def load_fit_config(path: str | Path) -> FitConfig:
+    """A fit config from its file; a one-line `InputError` naming the file and key."""
+    path = Path(path)
+    doc = parse_model(_FitFile, read_toml(path), path)
+    capture = (path.parent / doc.capture).resolve()
+    if not capture.exists():
+        raise ConfigError(
+            f"{path}: capture = {doc.capture!r} does not exist (relative to {path.parent})"
+        )
+    material = load_material(doc.material, path)
+    return FitConfig(path, capture, material, doc.fit)

@@ -1,0 +1,199 @@
+"""The native preset: a material as a TOML file, complete and lossless.
+
+```toml
+schema = 1                      # this module's PRESET_SCHEMA; newer files are refused
+[provenance]                    # where the values come from (free-form but typed)
+capture = "captures/samples/cup"
+created = "2026-11-29T12:00:00+00:00"
+loss = 0.0123
+software = { layerfit = "0.1.0", mitsuba = "3.9.1", drjit = "1.5.0" }
+std = { "glaze.roughness" = 0.0011 }   # per-parameter standard deviation, when known
+[material]                      # every layer's every parameter and option, as in configs
+type = "glaze"
+...
+```
+Textures (painted or fitted masks, texture-valued colours) are files beside the preset, named
+`<preset stem>.<key>.<ext>` and referenced by relative path. A config's `material = "x.toml"`
+reads a preset wherever a `[material]` table is accepted.
+"""
+
+from __future__ import annotations
+
+import datetime
+import shutil
+import tomllib
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+import tomli_w
+
+from captures.files import atomic_path, write_text
+
+from ..errors import ConfigError
+from .build import Material, build_material
+
+#: The preset format's version. Bump it when a preset's meaning changes, and upgrade older ones
+#: in `_upgrade` (or refuse them there with the reason).
+PRESET_SCHEMA = 1
+_TOP_KEYS = ("schema", "provenance", "material")
+_PROVENANCE_KEYS = ("capture", "config", "created", "loss", "software", "std", "note")
+
+
+@dataclass(frozen=True)
+class Preset:
+    """A loaded preset: the built material and its provenance table."""
+
+    material: Material
+    provenance: dict = field(default_factory=dict)
+    path: Path | None = None
+
+
+def software_versions() -> dict:
+    """The versions of what made a result (layerfit and the renderer stack)."""
+    out = {}
+    for name in ("layerfit", "mitsuba", "drjit", "jax", "optimistix"):
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+def provenance(capture=None, config=None, loss=None, std=None, note=None) -> dict:
+    """A provenance table: now, the software versions, and what is given (None left out)."""
+    out = {
+        "capture": None if capture is None else str(capture),
+        "config": None if config is None else str(config),
+        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "loss": None if loss is None else float(loss),
+        "software": software_versions(),
+        "std": std,
+        "note": note,
+    }
+    return {k: v for k, v in out.items() if v is not None}
+
+
+def save_preset(
+    material: Material,
+    path: str | Path,
+    provenance: dict | None = None,
+    textures: dict[str, np.ndarray] | None = None,
+) -> Path:
+    """Write `material` as a preset at `path`, its texture files beside it.
+
+    `textures` replaces texture parameters by fitted texels (key -> (H, W, C) array, written as
+    EXR). Every file appears whole or not at all; the TOML last, so a preset never names a
+    texture that is not there yet.
+    """
+    from captures.images import write_image
+
+    path = Path(path)
+    if path.suffix != ".toml":
+        raise ConfigError(f"{path}: a preset is a .toml file")
+    if path.is_dir():
+        raise ConfigError(f"{path}: is a folder; give the preset's file name")
+    textures = textures or {}
+    written: dict[Path, str] = {}
+    for key, source in material.texture_files().items():
+        fitted = textures.get(key)
+        suffix = ".exr" if fitted is not None else source.suffix.lower()
+        target = path.with_name(f"{path.stem}.{key}{suffix}")
+        if fitted is not None:
+            write_image(target, np.asarray(fitted, np.float32))
+        elif target.resolve() != source.resolve():
+            with atomic_path(target) as tmp:
+                shutil.copyfile(source, tmp)
+        written[source] = target.name
+    unknown = sorted(set(textures) - set(material.texture_files()))
+    if unknown:
+        raise ConfigError(f"{path}: no texture parameter {', '.join(unknown)} to write")
+    doc = {
+        "schema": PRESET_SCHEMA,
+        "provenance": _clean(provenance or {}),
+        "material": _clean(material.table(lambda p: written[p])),
+    }
+    return write_text(path, tomli_w.dumps(doc))
+
+
+def _clean(value):
+    """TOML-ready: tuples to lists, numpy scalars to Python, None dropped."""
+    if isinstance(value, dict):
+        return {str(k): _clean(v) for k, v in value.items() if v is not None}
+    if isinstance(value, list | tuple):
+        return [_clean(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def load_preset(path: str | Path) -> Preset:
+    """A preset from its file; a `ConfigError` naming the file and key for anything wrong."""
+    path = Path(path)
+    doc = read_toml(path)
+    schema = doc.get("schema")
+    if isinstance(schema, bool) or not isinstance(schema, int):
+        raise ConfigError(f"{path}: schema = {schema!r}; a preset starts with schema = 1")
+    doc = _upgrade(doc, path)
+    unknown = sorted(set(doc) - set(_TOP_KEYS))
+    if unknown:
+        raise ConfigError(
+            f"{path}: unknown key {unknown[0]} at the top level; known: {', '.join(_TOP_KEYS)}"
+        )
+    prov = doc.get("provenance", {})
+    if not isinstance(prov, dict):
+        raise ConfigError(f"{path}: [provenance] must be a table")
+    bad = sorted(set(prov) - set(_PROVENANCE_KEYS))
+    if bad:
+        known = ", ".join(_PROVENANCE_KEYS)
+        raise ConfigError(f"{path}: unknown key provenance.{bad[0]}; known: {known}")
+    if "material" not in doc:
+        raise ConfigError(f"{path}: missing [material]")
+    material = build_material(doc["material"], path)
+    if material is None:
+        raise ConfigError(f"{path}: every layer of [material] is disabled")
+    return Preset(material, prov, path)
+
+
+def _upgrade(doc: dict, path: Path) -> dict:
+    """A preset of an older schema in today's form, or a refusal that says why."""
+    schema = doc["schema"]
+    if schema > PRESET_SCHEMA:
+        raise ConfigError(
+            f"{path}: schema = {schema} was written by a newer layerfit (this one reads up to "
+            f"{PRESET_SCHEMA}); upgrade layerfit"
+        )
+    if schema < 1:
+        raise ConfigError(f"{path}: schema = {schema} is not a preset version (1 is the first)")
+    return doc
+
+
+def read_toml(path: Path) -> dict:
+    """A TOML document, or a one-line `ConfigError` naming the file."""
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a folder, not a TOML file") from None
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{path}: not UTF-8 text ({err.reason} at byte {err.start})") from None
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{path}: not valid TOML ({err})") from None
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read ({err.strerror})") from None
+
+
+def load_material(value, file: Path, where: str = "material") -> Material:
+    """A config's material: a `[material]` table, or the name of a preset file (relative to the
+    config)."""
+    if isinstance(value, str):
+        preset = (Path(file).parent / value).resolve()
+        if not preset.is_file():
+            raise ConfigError(f"{file}: {where} = {value!r} is not a preset file")
+        return load_preset(preset).material
+    material = build_material(value, file, where)
+    if material is None:
+        raise ConfigError(f"{file}: every layer of [{where}] is disabled: nothing to render")
+    return material

@@ -1,0 +1,116 @@
+"""What every solver shares: its options model, what it returns, and how a phase ended."""
+
+from __future__ import annotations
+
+import abc
+import enum
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+
+from .problem import Problem
+
+
+class Outcome(enum.StrEnum):
+    """How a phase ended."""
+
+    CONVERGED = "converged"  # the solver's own tolerance was met
+    STEP_LIMIT = "step_limit"  # its step count ran out (Adam always runs its steps)
+    DIVERGED = "diverged"  # its answer was not finite: the phase's start is kept, and said so
+    FAILED = "failed"  # the solver stopped on an error of its own (message says which)
+
+
+@dataclass
+class PhaseReport:
+    """One phase's outcome: solver, outcome, steps taken, steps rejected as non-finite, the
+    solver's message, final loss and wall time."""
+
+    solver: str
+    outcome: Outcome
+    steps: int
+    rejected: int = 0
+    message: str = ""
+    loss: float = float("nan")
+    seconds: float = 0.0
+
+    def as_dict(self) -> dict:
+        return {**self.__dict__, "outcome": str(self.outcome)}
+
+
+@dataclass
+class Result:
+    """A solver's (or a schedule's) answer: physical values by key, the unconstrained vector,
+    the final loss, steps, the loss history, and per phase its report."""
+
+    values: dict
+    u: np.ndarray
+    loss: float
+    steps: int
+    history: list[float] = field(default_factory=list)
+    reports: list[PhaseReport] = field(default_factory=list)
+    std: dict | None = None
+    correlation: np.ndarray | None = None
+    poorly_determined: list[str] = field(default_factory=list)
+    phase_ends: list[int] = field(default_factory=list)  # len(history) after each phase
+
+
+class Options(BaseModel):
+    """A solver's own settings in a `[[fit.phases]]` table (each field documented)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+
+
+#: `progress(step, loss)` after a solver's step.
+Progress = Callable[[int, float], None]
+
+
+class AbstractSolver(abc.ABC):
+    """A solver of a fit phase. Subclasses set `name`, their `Options` and implement `run`;
+    registering one is one line in `fit/solvers/registry.py`."""
+
+    name: ClassVar[str]
+    Options: ClassVar[type[Options]] = Options
+
+    @abc.abstractmethod
+    def run(
+        self,
+        problem: Problem,
+        u0: np.ndarray,
+        *,
+        steps: int,
+        spp: int,
+        seed: int,
+        downscale: int,
+        options: Options,
+        progress: Progress | None = None,
+    ) -> Result:
+        """Minimise `problem`'s loss from the unconstrained vector `u0`; the result's
+        `reports` holds this phase's report (outcome, steps, rejected steps)."""
+
+
+def finite_or_start(u, u0) -> tuple[np.ndarray, bool]:
+    """(`u`, True) when finite, else (`u0`, False): a non-finite answer is never applied."""
+    u = np.asarray(u)
+    if np.all(np.isfinite(u)):
+        return u, True
+    return np.asarray(u0), False
+
+
+def optimistix_outcome(solution, finite: bool) -> tuple[Outcome, str]:
+    """An optimistix solution's outcome and message (`throw=False` results, inspected)."""
+    import optimistix as optx
+
+    if not finite:
+        return Outcome.DIVERGED, "the solver's answer was not finite; kept the phase's start"
+    if bool(solution.result == optx.RESULTS.successful):
+        return Outcome.CONVERGED, ""
+    message = str(optx.RESULTS[solution.result])
+    steps_out = solution.result == optx.RESULTS.max_steps_reached
+    if bool(steps_out) or bool(solution.result == optx.RESULTS.nonlinear_max_steps_reached):
+        return Outcome.STEP_LIMIT, message
+    if bool(solution.result == optx.RESULTS.nonlinear_divergence):
+        return Outcome.DIVERGED, message
+    return Outcome.FAILED, message

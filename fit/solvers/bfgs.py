@@ -1,0 +1,48 @@
+"""BFGS (optimistix) on reverse-mode gradients with one shared seed."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import optimistix as optx
+
+from .base import AbstractSolver, Options, PhaseReport, Result, finite_or_start, optimistix_outcome
+from .problem import residuals
+
+
+class BFGSOptions(Options):
+    rtol: float = 1e-5
+    """Relative tolerance of convergence."""
+    atol: float = 1e-7
+    """Absolute tolerance of convergence."""
+
+
+class BFGS(AbstractSolver):
+    """BFGS with one shared seed (its line search needs a fixed objective; fresh seeds stall
+    it). Converges to that seed's optimum, like LM."""
+
+    name = "bfgs"
+    Options = BFGSOptions
+
+    def run(self, problem, u0, *, steps, spp, seed, downscale, options, progress=None) -> Result:
+        residual = residuals(problem, problem.render_fn("reverse", spp, downscale), downscale)
+
+        def loss(u, seed):
+            r = residual(u, seed)
+            return 0.5 * jnp.dot(r, r)
+
+        solution = optx.minimise(
+            loss,
+            optx.BFGS(rtol=options.rtol, atol=options.atol),
+            jnp.asarray(u0, jnp.float32),
+            args=jnp.int32(seed),
+            max_steps=steps,
+            throw=False,
+        )
+        u, finite = finite_or_start(solution.value, u0)
+        outcome, message = optimistix_outcome(solution, finite)
+        value = float(loss(jnp.asarray(u), jnp.int32(seed)))
+        taken = int(solution.stats["num_steps"])
+        if progress:
+            progress(taken, value)
+        report = PhaseReport(self.name, outcome, taken, message=message, loss=value)
+        return Result(problem.values(u), u, value, taken, [value], [report])

@@ -1,0 +1,51 @@
+"""Levenberg-Marquardt (optimistix) on the explicit Jacobian of one seed's render."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from pydantic import PositiveInt
+
+from .base import AbstractSolver, Options, PhaseReport, Result, finite_or_start, optimistix_outcome
+from .problem import residuals
+
+
+class LMOptions(Options):
+    jacobian_spp: PositiveInt | None = None
+    """Render the Jacobian decorrelated at this spp (absent: the residual's own seed and spp)."""
+    rtol: float = 1e-4
+    """Relative tolerance of convergence."""
+    atol: float = 1e-6
+    """Absolute tolerance of convergence."""
+
+
+class LevenbergMarquardt(AbstractSolver):
+    """LM on the explicit Jacobian with one seed. By default the Jacobian is this seed's exact
+    one (common random numbers: converges fast to the seed's own optimum, biased at low spp);
+    with `jacobian_spp` it is rendered decorrelated at that spp (see `Renderer.jacobian`): the
+    fixed point is unbiased and a cheap Jacobian serves an accurate, high-spp residual."""
+
+    name = "lm"
+    Options = LMOptions
+
+    def run(self, problem, u0, *, steps, spp, seed, downscale, options, progress=None) -> Result:
+        render = problem.render_fn("jacobian", spp, downscale, options.jacobian_spp)
+        independent = options.jacobian_spp is not None
+        residual = residuals(problem, render, downscale, independent_gains=independent)
+        solution = optx.least_squares(
+            residual,
+            optx.LevenbergMarquardt(rtol=options.rtol, atol=options.atol),
+            jnp.asarray(u0, jnp.float32),
+            args=jnp.int32(seed),
+            max_steps=steps,
+            throw=False,
+        )
+        u, finite = finite_or_start(solution.value, u0)
+        outcome, message = optimistix_outcome(solution, finite)
+        r = np.asarray(residual(jnp.asarray(u), jnp.int32(seed)))
+        loss, taken = float(0.5 * r @ r), int(solution.stats["num_steps"])
+        if progress:
+            progress(taken, loss)
+        report = PhaseReport(self.name, outcome, taken, message=message, loss=loss)
+        return Result(problem.values(u), u, loss, taken, [loss], [report])

@@ -1,0 +1,168 @@
+"""What a fit compares: the capture's views against renders of a material, as weighted,
+loss-shaped residuals that solvers minimise (no Mitsuba import: renders come through the bridge,
+loaded on first use)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from captures.capture import Capture
+
+from ..material import Free, Material, as_dict, to_physical, to_unconstrained
+
+LOSSES = ("l2", "huber", "cauchy")
+
+
+@dataclass
+class Problem:
+    """What a fit compares: the capture's views against renders of `material` with `free`
+    parameters, weighted by the validity weights.
+
+    With `gains`, every view but the first has a free RGB gain (photos rarely share an exact
+    exposure or white balance; the first stays fixed to remove the albedo/gain ambiguity), solved
+    as its logarithm and reported as `gain.<view>`.
+
+    `loss` shapes each pixel's difference d = render - photo before weighting: "l2" (d itself, the
+    default: unbiased under Monte Carlo noise), or robust ones that count differences beyond
+    `loss_scale` (default: a tenth of the photos' mean valid value) less, "huber" (linear tails)
+    and "cauchy" (logarithmic). Robust losses tame outliers (specks, unmodelled reflections) but
+    are biased under noise: they shrink the noisy render's large deviations asymmetrically."""
+
+    capture: Capture
+    material: Material
+    free: list[Free]
+    gains: bool = False
+    loss: str = "l2"
+    loss_scale: float | None = None
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self):
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss {self.loss!r}; choose one of {', '.join(LOSSES)}")
+
+    def at(self, downscale: int) -> Capture:
+        """The capture area-averaged by `downscale` (built once)."""
+        key = ("capture", downscale)
+        if key not in self._cache:
+            self._cache[key] = self.capture.downscaled(downscale)
+        return self._cache[key]
+
+    def target(self, downscale: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """(photos, sqrt of the normalised weights), flattened like the renders."""
+        views = self.at(downscale).views
+        image = np.concatenate([v.image.ravel() for v in views])
+        weight = np.concatenate([np.repeat(v.weight.ravel(), 3) for v in views])
+        return image.astype(np.float32), np.sqrt(weight / max(weight.sum() / 3, 1.0)).astype(
+            np.float32
+        )
+
+    def renderer(self, downscale: int = 1):
+        """The loaded scenes at a resolution, a `fit.render.Renderer` (built once: phases at the
+        same resolution share kernels, whatever their spp)."""
+        key = ("renderer", downscale)
+        if key not in self._cache:
+            from ..render import Renderer
+
+            self._cache[key] = Renderer(self.at(downscale), self.material.bsdf, self.free)
+        return self._cache[key]
+
+    def render_fn(self, mode: str, spp: int, downscale: int = 1, jacobian_spp: int | None = None):
+        """`render(x, seed)` as a JAX function at this resolution (see `fit.render.make_render`)."""
+        from ..render import make_render
+
+        return make_render(self.renderer(downscale), mode, spp, jacobian_spp)
+
+    def robust_scale(self) -> float:
+        """The width of a robust loss, in linear image units."""
+        if self.loss_scale is not None:
+            return self.loss_scale
+        image, sqrt_w = self.target()
+        return 0.1 * float(np.sum(image * sqrt_w**2) / max(np.sum(sqrt_w**2), 1e-12))
+
+    @property
+    def n_material(self) -> int:
+        return sum(f.size for f in self.free)
+
+    @property
+    def gain_views(self) -> list[int]:
+        return list(range(1, len(self.capture.views))) if self.gains else []
+
+    def unconstrained(self, start: dict):
+        """The solver's starting vector: material parameters, then log-gains (0: gain 1)."""
+        return np.concatenate(
+            [to_unconstrained(self.free, start), np.zeros(3 * len(self.gain_views))]
+        ).astype(np.float32)
+
+    def values(self, u) -> dict:
+        u = np.asarray(u, dtype=np.float64)
+        out = as_dict(self.free, to_physical(self.free, u[: self.n_material]))
+        for i, view in enumerate(self.gain_views):
+            start = self.n_material + 3 * i
+            out[f"gain.{self.capture.views[view].name}"] = np.exp(u[start : start + 3]).tolist()
+        return out
+
+    def gain_multipliers(self, log_gains, downscale: int = 1):
+        """Per-element multipliers of the flattened views (the first view's are 1)."""
+        views = self.at(downscale).views
+        parts = [jnp.ones(views[0].image.size, jnp.float32)]
+        for i, view in enumerate(self.gain_views):
+            gain = jnp.exp(log_gains[3 * i : 3 * i + 3]).astype(jnp.float32)
+            parts.append(jnp.tile(gain, views[view].image.size // 3))
+        return jnp.concatenate(parts)
+
+
+def shape_loss(d, loss: str, scale: float):
+    """The loss as a residual transform psi(d) with psi^2 / 2 = rho(d): smooth, psi(d) ~ d near 0
+    (so least-squares solvers take robust losses too)."""
+    if loss == "l2":
+        return d
+    x = d / scale
+    x2 = x * x
+    if loss == "huber":  # rho = x^2/2 inside, |x| - 1/2 outside
+        safe = jnp.maximum(jnp.abs(x), 1.0)
+        return jnp.where(jnp.abs(x) <= 1.0, d, jnp.sign(d) * scale * jnp.sqrt(2 * safe - 1))
+    # cauchy: rho = log(1 + x^2) / 2; psi = x sqrt(log1p(x^2) / x^2), the ratio -> 1 at 0
+    ratio = jnp.where(x2 > 1e-6, jnp.log1p(x2) / jnp.maximum(x2, 1e-6), 1.0 - x2 / 2)
+    return d * jnp.sqrt(ratio)
+
+
+#: With `independent_gains`, the gains' derivatives use a second render with the seed plus this
+#: offset (far from `GRAD_SEED_OFFSET` and from a schedule's consecutive seeds).
+GAIN_SEED_OFFSET = 0xB10C5
+
+
+def residuals(problem: Problem, render, downscale: int = 1, independent_gains: bool = False):
+    """`residual(u, seed)`: the weighted, loss-shaped differences of `render(x, seed)` (a JAX
+    function of the physical values) from the photos.
+
+    A gain g's derivative of the loss is sum(w (g I - T) I) over its view and channel: with the
+    same noisy image I in both factors its zero sits at g = T E[I] / E[I^2], biased low by the
+    render's relative variance (measured -33 % at 8 spp on the glazed sphere's highlights). With
+    `independent_gains` the derivative's second factor is an independent render I' (same value of
+    the residual, derivative sum(w (g I - T) I'), zero at the unbiased T / E[I]); it costs one
+    more primal render per evaluation, for solvers whose fixed point is a zero of an expected
+    gradient (Adam with fresh seeds, LM with a decorrelated Jacobian)."""
+    target, sqrt_w = (jnp.asarray(a) for a in problem.target(downscale))
+    n, loss, scale = problem.n_material, problem.loss, problem.robust_scale()
+    independent = independent_gains and problem.gains
+
+    def residual(u, seed):
+        x = to_physical(problem.free, u[:n], jnp)
+        image = render(x, seed)
+        if problem.gains:
+            gain = problem.gain_multipliers(u[n:], downscale)
+            if independent:
+                other = jax.lax.stop_gradient(
+                    render(jax.lax.stop_gradient(x), seed + GAIN_SEED_OFFSET)
+                )
+                fixed = jax.lax.stop_gradient(gain)
+                image = fixed * image + (gain - fixed) * other  # value: gain * image
+            else:
+                image = image * gain
+        return sqrt_w * shape_loss(image - target, loss, scale)
+
+    return residual

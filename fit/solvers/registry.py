@@ -1,0 +1,12 @@
+"""The solvers a `[[fit.phases]]` table can name: one line each."""
+
+from .adam import Adam
+from .base import AbstractSolver
+from .bfgs import BFGS
+from .lm import LevenbergMarquardt
+
+SOLVERS: dict[str, type[AbstractSolver]] = {
+    "adam": Adam,
+    "lm": LevenbergMarquardt,
+    "bfgs": BFGS,
+}

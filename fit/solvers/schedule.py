@@ -1,0 +1,160 @@
+"""Fit schedules: phases of a solver at a sample count and resolution, the default one, and
+running them in turn (then the uncertainty at the result)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    PositiveInt,
+    PrivateAttr,
+    ValidationError,
+    model_validator,
+)
+
+from captures.model import FieldError
+
+from .base import Options, Result
+from .problem import Problem
+from .registry import SOLVERS
+from .uncertainty import MAX_UNCERTAINTY_PARAMS, uncertainty
+
+
+class Phase(BaseModel):
+    """One phase of a schedule (a `[[fit.phases]]` table): a solver, its steps, samples per pixel
+    and resolution; the solver's own options (Adam's `lr`, LM's `jacobian_spp`, ...) beside them,
+    checked against the solver's `Options`."""
+
+    model_config = ConfigDict(extra="allow", frozen=True, use_attribute_docstrings=True)
+
+    solver: str
+    """The solver: adam | lm | bfgs (`fit/solvers/registry.py`)."""
+    steps: PositiveInt
+    """Steps (Adam) or the most steps (LM, BFGS)."""
+    spp: PositiveInt
+    """Samples per pixel of each render."""
+    downscale: PositiveInt = 1
+    """This phase's resolution: the photos area-averaged by this factor, the cameras follow."""
+    _options: Options = PrivateAttr()
+
+    @model_validator(mode="after")
+    def _solver_options(self):
+        if self.solver not in SOLVERS:
+            choices = ", ".join(SOLVERS)
+            raise FieldError("solver", f"got {self.solver!r}; choose one of {choices}")
+        extra = dict(self.model_extra or {})
+        allowed = SOLVERS[self.solver].Options.model_fields
+        for key in extra:
+            if key not in allowed:
+                known = ", ".join(allowed) or "none"
+                raise FieldError(
+                    key, f"does not apply to solver = {self.solver!r} (its options: {known})"
+                )
+        try:
+            self._options = SOLVERS[self.solver].Options(**extra)
+        except ValidationError as err:
+            first = err.errors(include_url=False)[0]
+            key = ".".join(str(x) for x in first["loc"])
+            raise FieldError(
+                key, f"got {first['input']!r}; {first['msg'].replace('Input should', 'should')}"
+            ) from None
+        return self
+
+    @property
+    def options(self) -> Options:
+        """The solver's validated options."""
+        return self._options
+
+    def __getattr__(self, name):  # phase.lr, phase.jacobian_spp: the solver's options
+        options = self.__pydantic_private__.get("_options") if self.__pydantic_private__ else None
+        if options is not None and name in type(options).model_fields:
+            return getattr(options, name)
+        return super().__getattr__(name)
+
+    def describe(self) -> str:
+        return f"{self.solver}, {self.spp} spp, 1/{self.downscale} res"
+
+
+#: The default schedule (measured on the Cycles sphere, README "Fitting"): Adam with fresh seeds
+#: at half resolution and 8 spp is cheap and robust from far away (its scale-free steps also move
+#: a parameter started next to a bound, where the sigmoid is flat); then Adam at full resolution,
+#: 32 spp, a small rate, averaging the last half of the iterates (Polyak: the steps' Monte Carlo
+#: noise cancels). LM polishes measured worse there: with one seed it converges to that seed's
+#: biased optimum (alpha +7 % at 64 spp), with a decorrelated Jacobian to alpha +3 %.
+DEFAULT_SCHEDULE = (
+    Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
+    Phase(solver="adam", steps=60, spp=32, lr=0.02, average=0.5),
+)
+
+
+def solve(
+    solver: str,
+    problem: Problem,
+    u0,
+    *,
+    steps: int,
+    spp: int,
+    seed: int = 0,
+    downscale: int = 1,
+    progress: Callable[[int, float], None] | None = None,
+    **options,
+) -> Result:
+    """One phase: `solver` (a registry name) with its `options`, from the unconstrained `u0`."""
+    phase = Phase(solver=solver, steps=steps, spp=spp, downscale=downscale, **options)
+    return SOLVERS[solver]().run(
+        problem,
+        np.asarray(u0, np.float32),
+        steps=phase.steps,
+        spp=phase.spp,
+        seed=seed,
+        downscale=phase.downscale,
+        options=phase.options,
+        progress=progress,
+    )
+
+
+def run_schedule(
+    problem: Problem,
+    start: dict,
+    phases: tuple[Phase, ...] | list[Phase] = DEFAULT_SCHEDULE,
+    seed: int = 0,
+    progress: Callable[[int, int, float], None] | None = None,
+    uncertainty_spp: int = 64,
+) -> Result:
+    """Run `phases` in turn from `start` (phase k uses seed + k), then the uncertainty at the
+    result (up to `MAX_UNCERTAINTY_PARAMS` components). `progress(phase, step, loss)` after
+    every step a solver reports and at the end of each phase. Each phase's report (outcome,
+    steps, rejected steps, wall time) is in the result's `reports`."""
+    u = problem.unconstrained(start)
+    history, steps, ends, reports = [], 0, [], []
+    result = Result(problem.values(u), u, float("nan"), 0)
+    for k, phase in enumerate(phases):
+        report = (lambda i, value, k=k: progress(k, i, value)) if progress else None
+        began = time.perf_counter()
+        result = SOLVERS[phase.solver]().run(
+            problem,
+            np.asarray(u, np.float32),
+            steps=phase.steps,
+            spp=phase.spp,
+            seed=seed + k,
+            downscale=phase.downscale,
+            options=phase.options,
+            progress=report,
+        )
+        result.reports[-1].seconds = time.perf_counter() - began
+        if progress:
+            progress(k, phase.steps, result.loss)
+        history += result.history
+        reports += result.reports
+        u, steps = result.u, steps + result.steps
+        ends.append(len(history))
+    result.steps, result.history, result.phase_ends, result.reports = steps, history, ends, reports
+    if len(u) <= MAX_UNCERTAINTY_PARAMS:
+        result.std, result.correlation, result.poorly_determined = uncertainty(
+            problem, np.asarray(u), uncertainty_spp, seed + len(phases)
+        )
+    return result
