@@ -9,6 +9,8 @@ from captures import Camera, Scene
 from captures.geometry import MeshData, cup_mesh
 from captures.scene import Cup, DirectionalLight, EnvMap, ObjFile, PointLight, RectLight, Sphere
 
+from ..material import Material
+
 #: Traverse-key prefix of the object's material in a scene built by `scene_dict`.
 MATERIAL_PREFIX = "object.bsdf."
 
@@ -134,9 +136,13 @@ def environment_dict(scene: Scene) -> dict | None:
     return None
 
 
-def scene_dict(scene: Scene, bsdf: dict | mi.BSDF, view: int = 0, spp: int = 64) -> dict:
+def scene_dict(
+    scene: Scene, bsdf: Material | dict | mi.BSDF, view: int = 0, spp: int = 64
+) -> dict:
     """A Mitsuba scene dict of one view; the material's traverse keys are `MATERIAL_PREFIX` + its
     own keys (`material_keys`)."""
+    if isinstance(bsdf, Material):
+        bsdf = bsdf.bsdf
     material = mi.load_dict(bsdf) if isinstance(bsdf, dict) else bsdf
     out = {
         "type": "scene",

@@ -91,15 +91,23 @@ class AbstractSolver(abc.ABC):
         `reports` holds this phase's report (outcome, steps, rejected steps)."""
 
 
-def finite_or_start(u, u0) -> tuple[np.ndarray, bool]:
-    """(`u`, True) when finite, else (`u0`, False): a non-finite answer is never applied."""
-    u = np.asarray(u)
-    if np.all(np.isfinite(u)):
-        return u, True
-    return np.asarray(u0), False
+def optimistix_result(name: str, problem: Problem, solution, u0, loss_at, progress) -> Result:
+    """The `Result` of an optimistix solve run with `throw=False`, its outcome inspected; a
+    non-finite answer is never applied (the phase's start is kept, and the outcome says so).
+    `loss_at(u)` is the loss at the answer."""
+    u = np.asarray(solution.value)
+    finite = bool(np.all(np.isfinite(u)))
+    if not finite:
+        u = np.asarray(u0)
+    outcome, message = _optimistix_outcome(solution, finite)
+    loss, taken = float(loss_at(u)), int(solution.stats["num_steps"])
+    if progress:
+        progress(taken, loss)
+    report = PhaseReport(name, outcome, taken, message=message, loss=loss)
+    return Result(problem.values(u), u, loss, taken, [loss], [report])
 
 
-def optimistix_outcome(solution, finite: bool) -> tuple[Outcome, str]:
+def _optimistix_outcome(solution, finite: bool) -> tuple[Outcome, str]:
     """An optimistix solution's outcome and message (`throw=False` results, inspected)."""
     import optimistix as optx
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import optimistix as optx
 
-from .base import AbstractSolver, Options, PhaseReport, Result, finite_or_start, optimistix_outcome
+from .base import AbstractSolver, Options, Result, optimistix_result
 from .problem import residuals
 
 
@@ -38,11 +38,8 @@ class BFGS(AbstractSolver):
             max_steps=steps,
             throw=False,
         )
-        u, finite = finite_or_start(solution.value, u0)
-        outcome, message = optimistix_outcome(solution, finite)
-        value = float(loss(jnp.asarray(u), jnp.int32(seed)))
-        taken = int(solution.stats["num_steps"])
-        if progress:
-            progress(taken, value)
-        report = PhaseReport(self.name, outcome, taken, message=message, loss=value)
-        return Result(problem.values(u), u, value, taken, [value], [report])
+
+        def loss_at(u):
+            return loss(jnp.asarray(u), jnp.int32(seed))
+
+        return optimistix_result(self.name, problem, solution, u0, loss_at, progress)

@@ -7,7 +7,7 @@ import numpy as np
 import optimistix as optx
 from pydantic import PositiveInt
 
-from .base import AbstractSolver, Options, PhaseReport, Result, finite_or_start, optimistix_outcome
+from .base import AbstractSolver, Options, Result, optimistix_result
 from .problem import residuals
 
 
@@ -41,11 +41,9 @@ class LevenbergMarquardt(AbstractSolver):
             max_steps=steps,
             throw=False,
         )
-        u, finite = finite_or_start(solution.value, u0)
-        outcome, message = optimistix_outcome(solution, finite)
-        r = np.asarray(residual(jnp.asarray(u), jnp.int32(seed)))
-        loss, taken = float(0.5 * r @ r), int(solution.stats["num_steps"])
-        if progress:
-            progress(taken, loss)
-        report = PhaseReport(self.name, outcome, taken, message=message, loss=loss)
-        return Result(problem.values(u), u, loss, taken, [loss], [report])
+
+        def loss_at(u):
+            r = np.asarray(residual(jnp.asarray(u), jnp.int32(seed)))
+            return 0.5 * r @ r
+
+        return optimistix_result(self.name, problem, solution, u0, loss_at, progress)

@@ -67,7 +67,7 @@ class Problem:
         if key not in self._cache:
             from ..render import Renderer
 
-            self._cache[key] = Renderer(self.at(downscale), self.material.bsdf, self.free)
+            self._cache[key] = Renderer(self.at(downscale), self.material, self.free)
         return self._cache[key]
 
     def render_fn(self, mode: str, spp: int, downscale: int = 1, jacobian_spp: int | None = None):

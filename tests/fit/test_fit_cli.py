@@ -46,7 +46,9 @@ def test_fit_command(tmp_path):
 
 
 def test_fit_command_bad_config(tmp_path):
-    (tmp_path / "fit.toml").write_text('capture = "nowhere"\n[material]\ntype = "glaze"\n')
+    (tmp_path / "fit.toml").write_text(
+        'capture = "nowhere"\n[material]\ntype = "glaze"\n[fit]\nfree = ["glaze.ior"]\n'
+    )
     out = run_cli("fit", tmp_path / "fit.toml", timeout=300)
     assert out.returncode == 2
     assert "fit.toml: capture = 'nowhere' does not exist" in out.stderr

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +42,7 @@ def test_synth_round_trip(tmp_path):
         "glaze.pigment": [0.1, 0.22, 0.55],
         "glaze.roughness": 0.0625,
         "glaze.ior": 1.52,
+        "glaze.sigma": 0.0,  # every declared parameter of the truth, defaults included
     }
     (view,) = capture.views
     assert view.gain != 1.0  # a random exposure was applied, recorded, and undone on load
@@ -93,7 +95,7 @@ def test_synth_never_overwrites_and_leaves_nothing_on_failure(tmp_path):
         synthesize(scene, cfg.material, tmp_path / "taken", spp=4)
     with pytest.raises(ValueError, match="format"):
         synthesize(scene, cfg.material, tmp_path / "new", spp=4, fmt="gif")
-    bad = {**cfg.material, "roughness": "not a number"}
+    bad = dataclasses.replace(cfg.material, bsdf={**cfg.material.bsdf, "roughness": "no"})
     with pytest.raises(RuntimeError):  # Mitsuba refuses the material mid-way
         synthesize(scene, bad, tmp_path / "half", spp=4)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["taken"]

@@ -12,7 +12,7 @@ from captures.capture import Capture, View
 from captures.images import write_image
 from captures.scene import Camera
 from fit.config import load_render_config
-from fit.material import material_dict, resolve
+from fit.material import build_material, resolve
 from fit.render import render, scene_dict
 from fit.solvers import Phase, Problem, run_schedule
 
@@ -27,7 +27,7 @@ def truth_texture() -> np.ndarray:
     return np.where((rows + cols) % 2 == 0, 0.9, 0.1).astype(np.float32)[..., None]
 
 
-def material(texture: Path) -> dict:
+def material(texture: Path):
     """Clay under a blue glaze whose mask is the texture (threshold 0: the fbm factor is ~1)."""
     table = {
         "type": "layered",
@@ -41,7 +41,7 @@ def material(texture: Path) -> dict:
             },
         ],
     }
-    return material_dict(table, texture.parent / "material.toml")
+    return build_material(table, texture.parent / "material.toml")
 
 
 def capture(tmp_path: Path) -> Capture:
