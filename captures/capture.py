@@ -53,7 +53,7 @@ from .model import (
 from .raw import develop, read_raw
 from .scene import Camera, Scene, bounding_sphere, sees
 from .schema import load_toml, parse_scene
-from .weights import downscale, validity
+from .weights import downscale, downscaled_size, validity
 
 log = logging.getLogger(__name__)
 
@@ -91,9 +91,10 @@ class Capture:
         return replace(self.scene, cameras=(v.camera,), lights=lights)
 
     def downscaled(self, factor: int) -> Capture:
-        """A copy area-averaged by an integer `factor` (weights become each block's valid share,
-        masks keep blocks more than half covered); the cameras follow (same field of view, fewer
-        pixels), so a render of the copy is the area average of a render of the original."""
+        """A copy area-averaged by an integer `factor`, any image size (weights become each output
+        pixel's valid share, masks keep pixels more than half covered; see `weights.downscale`);
+        the cameras follow (same field of view, fewer pixels), so a render of the copy is the area
+        average of a render of the original."""
         if factor == 1:
             return self
         views, cameras = [], []
@@ -107,9 +108,8 @@ class Capture:
                 h, w = mask.shape
                 block = downscale(mask[..., None].astype(np.float32), np.ones((h, w)), factor)[0]
                 mask = block[..., 0] > 0.5
-            camera = replace(
-                view.camera, width=view.camera.width // factor, height=view.camera.height // factor
-            )
+            width, height = downscaled_size(view.camera.width, view.camera.height, factor)
+            camera = replace(view.camera, width=width, height=height)
             views.append(replace(view, image=image, weight=weight, camera=camera, mask=mask))
             cameras.append(camera)
         scene = replace(self.scene, cameras=tuple(cameras[: len(self.scene.cameras)]))

@@ -6,7 +6,7 @@
 - `fit.render`: Mitsuba scenes, forward renders, the `Renderer` and the one JAX <-> Dr.Jit bridge.
 - `fit.solvers`: the problem and its residuals, one solver per module and their registry,
   schedules, uncertainty.
-- `fit.output`: figures and sheets, through one atomic writer.
+- `fit.output`: figures and the HTML report of a run, through one atomic writer.
 - `fit.commands`: one module per command; `fit.cli` is the thin command line over them.
 - `fit.variant`: choose the Mitsuba variant once (before anything imports Mitsuba).
 """

@@ -266,25 +266,39 @@ def inspect(
 
 @app.command()
 def fit(
-    config: Annotated[Path, typer.Argument(help="Fit config (TOML): capture, [material], [fit].")],
+    config: Annotated[Path, typer.Argument(help="Fit config (TOML): capture, material, fit.")],
     out: Annotated[
-        Path | None, typer.Option(help="Output folder (default out/<config name>).")
+        Path | None, typer.Option(help="Run folder (default out/<config name>).")
+    ] = None,
+    resume: Annotated[
+        bool, typer.Option("--resume", help="Continue a killed run from its checkpoint.")
+    ] = False,
+    force: Annotated[
+        bool, typer.Option("--force", help="Replace the results in an existing run folder.")
+    ] = False,
+    holdout: Annotated[
+        int | None,
+        typer.Option(min=0, help="Views kept out of the fit and scored (default: the config's)."),
     ] = None,
     variant: VariantOption = None,
 ) -> None:
-    """Fit the free material parameters to a capture; print recovered vs known values."""
+    """Fit the free material parameters to a capture into a run folder (preset, summary, report);
+    print fitted vs known values."""
     from rich.table import Table as RichTable
 
     from .config import load_fit_config
 
+    out = out or Path("out") / config.stem
     try:
         cfg = load_fit_config(config)
+        from .commands.fit import check_output
+
+        check_output(out, cfg, resume, force)
     except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)
-    from .commands.fit import run_fit
+    from .commands.fit import Interrupted, run_fit
 
-    out = out or Path("out") / config.stem
     with _progress() as bar:
         tasks = [
             bar.add_task(
@@ -294,13 +308,24 @@ def fit(
             for k, p in enumerate(cfg.phases)
         ]
         try:
-            summary = run_fit(cfg, out, lambda k, n, loss: bar.update(tasks[k], completed=n))
+            summary = run_fit(
+                cfg, out, lambda k, n, loss: bar.update(tasks[k], completed=n), resume, holdout
+            )
         except (InputError, KeyError) as err:
             raise _fail(err, 2) from None
+        except Interrupted:
+            bar.stop()
+            console.print(
+                f"interrupted: checkpoint saved; resume with: layerfit fit {config} --out {out} "
+                "--resume",
+                highlight=False,
+                soft_wrap=True,
+            )
+            raise typer.Exit(130) from None
     solvers = "+".join(p.solver for p in cfg.phases)
     table = RichTable(title=f"{config}: {solvers}, {summary['wall_time_s']:.1f} s")
     table.add_column("parameter", no_wrap=True)
-    for column in ("start", "fitted", "std", "known", "error"):
+    for column in ("start", "fitted", "std", "known", "error", "error/std"):
         table.add_column(column)
 
     def fmt(value):
@@ -320,6 +345,7 @@ def fit(
             fmt(std.get(key)),
             fmt(summary["truth"].get(key)),
             fmt(summary["error"].get(key)),
+            fmt(summary["error_over_std"].get(key)),
         )
     console.print(table)
     if summary["poorly_determined"]:
@@ -332,10 +358,11 @@ def fit(
                 f"[yellow]{report['solver']}:[/] {report['outcome']}: {report['message']}",
                 highlight=False,
             )
-    console.print(
-        f"wrote {out / 'preset.toml'}, summary.json, loss.png and fit.png "
-        "(photo | fit | difference)"
-    )
+    held = [v for v in summary["views"] if v["held_out"]]
+    if held:
+        scores = ", ".join(f"{v['name']} {v['rmse']:.3f}" for v in held)
+        console.print(f"held-out views, relative RMSE: {scores}", highlight=False)
+    console.print(f"run folder: {out} (preset.toml, summary.json, report.html)", highlight=False)
 
 
 def main() -> None:

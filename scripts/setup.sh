@@ -1,8 +1,18 @@
 #!/usr/bin/env bash
 # Set up layerfit on Debian/Ubuntu: libLLVM >= 16 (Dr.Jit's CPU backend), python3-venv, and a .venv
 # with the project installed (editable, with test tools). Safe to run again; fast when nothing changed.
+# `--with-chromium` (or LAYERFIT_CHROMIUM=1; scripts/test.sh passes it) also installs Debian's chromium
+# for the HTML report test, if /usr/bin/chromium is missing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+
+with_chromium=${LAYERFIT_CHROMIUM:-0}
+for arg in "$@"; do
+  case "$arg" in
+    --with-chromium) with_chromium=1 ;;
+    *) echo "setup: unknown option $arg (known: --with-chromium)" >&2; exit 2 ;;
+  esac
+done
 
 as_root() { if [ "$(id -u)" = 0 ]; then "$@"; elif command -v sudo >/dev/null; then sudo "$@"; else
   echo "setup: need root (or sudo) to run: $*" >&2; exit 1; fi; }
@@ -26,6 +36,16 @@ if ! have_llvm; then
     if apt_install "libllvm$v" 2>/dev/null; then installed=1; break; fi
   done
   [ "$installed" = 1 ] || { echo "setup: no libllvm16..19 package found; install libLLVM >= 16" >&2; exit 1; }
+fi
+
+if [ "$with_chromium" = 1 ] && [ ! -x /usr/bin/chromium ]; then  # optional, except in CI
+  echo "setup: installing chromium (the HTML report test opens the report in it)"
+  if ! { command -v apt-get >/dev/null && (apt_install chromium); }; then
+    case "${CI:-}" in
+      "" | 0 | [Ff]alse) echo "setup: no /usr/bin/chromium; the HTML report test will be skipped" >&2 ;;
+      *) echo "setup: CI needs /usr/bin/chromium (the HTML report test); install chromium" >&2; exit 1 ;;
+    esac
+  fi
 fi
 
 PY=${PYTHON:-python3}

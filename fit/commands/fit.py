@@ -1,86 +1,289 @@
-"""`layerfit fit`: a fit config end to end: capture in; fitted values, uncertainty, the native
-preset, summary and pictures out."""
+"""`layerfit fit`: a fit config end to end, into a run folder:
+
+```
+out/<config name>/
+  preset.toml           the fitted material (native preset; fitted textures beside it)
+  summary.json          values, std, truth and errors, per-view residuals, phase outcomes and
+                        times, software versions
+  report.html report/   photo | fit | difference per view (held-out views marked), loss per
+                        phase, the parameter table, the correlation heat map, fitted masks
+  checkpoint.npz        while running (removed at the end): `--resume` continues from it
+```
+Every file is written atomically; an existing run folder is never overwritten without `force`.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import json
+import math
+import signal
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from captures import CaptureError, open_capture
+from captures import CaptureError, InputError, open_capture
+from captures.capture import Capture
 from captures.images import write_image
 
 from ..config import FitConfig
-from ..material import provenance, resolve, save_preset, start_values
-from ..output import comparison_sheet, loss_plot, write_text
-from ..solvers import Problem, Result, run_schedule
+from ..material import Free, provenance, resolve, save_preset, start_values, to_physical
+from ..material.preset import software_versions
+from ..output import ViewPanel, write_report, write_text
+from ..solvers import Checkpoint, Problem, Result, run_schedule
+
+#: Samples per pixel of the renders in the report (and the per-view residuals).
+REPORT_SPP = 64
+
+
+class Interrupted(Exception):
+    """A fit stopped by Ctrl-C after saving its checkpoint and a partial report."""
+
+    def __init__(self, out: Path):
+        super().__init__(f"interrupted; the checkpoint and a partial report are in {out}")
+        self.out = out
+
+
+def held_out(n_views: int, n: int) -> list[int]:
+    """`n` view indices spread over `n_views`, never the first (the gains' reference)."""
+    if n == 0:
+        return []
+    if not 0 < n < n_views:
+        raise InputError(f"holdout = {n}: keep at least one of the {n_views} views in the fit")
+    picks = sorted({min(n_views - 1, max(1, round((j + 1) * n_views / (n + 1)))) for j in range(n)})
+    rest = [i for i in range(n_views - 1, 0, -1) if i not in picks]
+    return sorted(picks + rest[: n - len(picks)])
+
+
+def check_output(out: Path, cfg: FitConfig, resume: bool, force: bool) -> None:
+    """Refuse, before any work, an output that would lose something or cannot be written."""
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: is a file; give a folder")
+    inputs = [cfg.path.resolve(), Path(cfg.capture).resolve()]
+    if any(p == out.resolve() or p.is_relative_to(out.resolve()) for p in inputs):
+        raise InputError(f"--out {out}: holds the fit's inputs; choose another folder")
+    if resume:
+        if not (out / "checkpoint.npz").exists():
+            raise InputError(f"--resume: no checkpoint in {out} (nothing to resume)")
+    elif out.exists() and any(out.iterdir()) and not force:
+        raise InputError(
+            f"--out {out}: exists and is not empty; choose another folder, --resume a killed "
+            "run, or --force to replace its results"
+        )
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        write_text(out / ".write-test", "")
+        (out / ".write-test").unlink()
+    except OSError as err:
+        raise InputError(f"--out {out}: cannot write there ({err.strerror})") from None
+
+
+def check_truth(capture: Capture, free: list[Free], path) -> None:
+    """A `[truth]` value of the wrong size fails before any work (not after the fit)."""
+    for f in free:
+        value = capture.truth.get(f.key)
+        if value is not None and np.size(value) != f.size:
+            raise CaptureError(
+                f"{path}: truth {f.key!r} has {np.size(value)} value(s); the parameter has {f.size}"
+            )
 
 
 def run_fit(
-    cfg: FitConfig, out: Path, progress: Callable[[int, int, float], None] | None = None
+    cfg: FitConfig,
+    out: Path,
+    progress: Callable[[int, int, float], None] | None = None,
+    resume: bool = False,
+    holdout: int | None = None,
 ) -> dict:
-    """Fit, then write `preset.toml` (the fitted material), `summary.json`, `loss.png` and
-    `fit.png` (photos, fitted renders and their differences) into `out`; returns the summary.
-    `progress(phase, step, loss)` as in `run_schedule`."""
+    """Fit `cfg` into the run folder `out` (see the module's docstring); returns the summary.
+    `progress(phase, step, loss)` as in `run_schedule`. On Ctrl-C the checkpoint and a partial
+    summary and report are written, then `Interrupted` is raised."""
     capture = open_capture(cfg.capture, cfg.downscale)
+    held = held_out(len(capture.views), cfg.holdout if holdout is None else holdout)
+    fitted = dataclasses.replace(
+        capture, views=[v for i, v in enumerate(capture.views) if i not in held]
+    )
     free = resolve(cfg.material, cfg.free)
-    problem = Problem(capture, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)
-    start = start_values(free)
+    check_truth(capture, free, cfg.capture)
+    problem = Problem(fitted, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)
     for k, phase in enumerate(cfg.phases):  # fail before any work, naming the phase
         try:
             problem.at(phase.downscale)
         except CaptureError as err:
             raise CaptureError(f"{cfg.path}: fit.phases[{k}].downscale: {err}") from None
+    start = start_values(free)
+    checkpoint = Checkpoint(out / "checkpoint.npz")
     began = time.perf_counter()
-    result = run_schedule(problem, start, cfg.phases, cfg.seed, progress, cfg.uncertainty_spp)
-    wall = time.perf_counter() - began
-    summary = _summary(cfg, capture.truth, start, result, wall)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        with _stop_on_ctrl_c(checkpoint):
+            result = run_schedule(
+                problem,
+                start,
+                cfg.phases,
+                cfg.seed,
+                progress,
+                cfg.uncertainty_spp,
+                checkpoint,
+                resume,
+            )
+    except KeyboardInterrupt:
+        checkpoint.flush()
+        state = checkpoint.latest or {}
+        u = np.asarray(state.get("u", state.get("u_phase", problem.unconstrained(start))))
+        history = list(state.get("history_before", [])) + list(state.get("history", []))
+        partial = Result(problem.values(u), u, history[-1] if history else math.nan, 0, history)
+        partial.phase_ends = list(state.get("ends", [])) + ([len(history)] if history else [])
+        wall = time.perf_counter() - began
+        _write(cfg, out, capture, held, problem, start, partial, wall, interrupted=True)
+        raise Interrupted(out) from None
+    summary = _write(cfg, out, capture, held, problem, start, result, time.perf_counter() - began)
+    checkpoint.remove()
+    return summary
+
+
+@contextlib.contextmanager
+def _stop_on_ctrl_c(checkpoint: Checkpoint):
+    """Ctrl-C asks the schedule to stop at its next step (never inside a render, where JAX would
+    wrap the interrupt); a second Ctrl-C stops at once."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def request(signum, frame):
+        checkpoint.stop = True
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    previous = signal.signal(signal.SIGINT, request)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _write(cfg, out, capture, held, problem, start, result, wall, interrupted=False) -> dict:
+    """The run folder's files from a (possibly partial) result."""
+    free = problem.free
     textures = {  # fitted textures as images next to the summary and in the preset
         f.key: np.asarray(result.values[f.key], np.float32).reshape(f.shape)
         for f in free
         if f.shape
     }
+    panels = _panels(cfg, capture, held, problem, result)
+    summary = _summary(cfg, capture, held, start, result, wall, panels, interrupted)
+    fitted_material = cfg.material.with_values(result.values)
     for key, texels in textures.items():
         write_image(out / f"{key}.exr", texels)
     std = {k: v for k, v in (result.std or {}).items() if k in cfg.material.params}
     save_preset(
-        cfg.material.with_values(result.values),
+        fitted_material,
         out / "preset.toml",
         provenance(cfg.capture, cfg.path, result.loss, std or None),
         textures,
     )
-    write_text(out / "summary.json", json.dumps(summary, indent=2))
-    loss_plot(result, cfg.phases, out / "loss.png")
-    comparison_sheet(problem, result.u, out / "fit.png", seed=cfg.seed + 7)
+    write_text(out / "summary.json", json.dumps(_finite(summary), indent=2, allow_nan=False))
+    masks = _masks(fitted_material) | {k: t[..., 0] for k, t in textures.items()}
+    title = f"{cfg.path.name}{' (interrupted)' if interrupted else ''}"
+    write_report(out, summary, panels, masks, title)
     return summary
 
 
-def _summary(cfg: FitConfig, truth: dict, start: dict, result: Result, wall: float) -> dict:
-    errors = {}
+def _panels(cfg, capture, held, problem, result) -> list[ViewPanel]:
+    """Every view (held-out ones too) rendered at the fitted values, with its relative RMSE."""
+    from ..render import Renderer
+
+    n = problem.n_material
+    x = np.asarray(to_physical(problem.free, np.asarray(result.u)[:n]), np.float32)
+    flat = Renderer(capture, cfg.material, problem.free).render(x, cfg.seed + 7, REPORT_SPP)
+    panels, offset = [], 0
+    for i, view in enumerate(capture.views):
+        size = view.image.size
+        render = flat[offset : offset + size].reshape(view.image.shape)
+        offset += size
+        gain = result.values.get(f"gain.{view.name}", [1.0, 1.0, 1.0])
+        render = render * np.asarray(gain, np.float32)
+        w = view.weight[..., None]
+        rmse = math.sqrt(
+            float(np.sum(w * (render - view.image) ** 2))
+            / max(float(np.sum(w * view.image**2)), 1e-30)
+        )
+        panels.append(ViewPanel(view.name, view.image, render, view.weight, i in held, rmse))
+    return panels
+
+
+def _masks(material) -> dict[str, np.ndarray]:
+    """Each layer's mask (texture x fbm at the fitted values) baked in UV space."""
+    from ..render import bake_texture
+
+    bsdf = material.bsdf
+    if bsdf.get("type") != "layered":
+        return {}
+    return {
+        f"{name}.mask": bake_texture(bsdf[f"{name}_mask"], 256, 256)
+        for name in bsdf["layers"].split(",")
+        if f"{name}_mask" in bsdf
+    }
+
+
+def _labels(values: dict) -> list[str]:
+    """One label per component of the solver's vector (`glaze.pigment[0]`, `glaze.ior`)."""
+    out = []
+    for key, value in values.items():
+        size = np.size(value)
+        out += [key] if size == 1 else [f"{key}[{i}]" for i in range(size)]
+    return out
+
+
+def _summary(cfg, capture, held, start, result, wall, panels, interrupted) -> dict:
+    truth = capture.truth
+    errors, z = {}, {}
     for key, value in result.values.items():
         if key in truth:
-            errors[key] = (np.asarray(value) - np.asarray(truth[key])).tolist()
+            error = np.asarray(value, float) - np.asarray(truth[key], float)
+            errors[key] = error.tolist()
+            std = (result.std or {}).get(key)
+            if std is not None:
+                z[key] = (error / np.maximum(np.asarray(std, float), 1e-30)).tolist()
     return {
         "config": str(cfg.path),
         "capture": str(cfg.capture),
+        "interrupted": interrupted,
         "phases": [
             {**p.model_dump(exclude=set(p.model_extra or ())), **p.options.model_dump()}
             for p in cfg.phases
         ],
         "outcomes": [r.as_dict() for r in result.reports],
         "seed": cfg.seed,
+        "holdout": [capture.views[i].name for i in held],
         "start": start,
         "values": result.values,
         "std": result.std,
         "correlation": None if result.correlation is None else result.correlation.tolist(),
+        "correlation_labels": _labels(result.values),
         "poorly_determined": result.poorly_determined,
         "truth": {k: truth[k] for k in result.values if k in truth},
         "error": errors,
+        "error_over_std": z,
+        "views": [{"name": p.name, "rmse": p.rmse, "held_out": p.held_out} for p in panels],
         "loss": result.loss,
         "history": result.history,
+        "phase_ends": result.phase_ends,
         "wall_time_s": wall,
+        "software": software_versions(),
     }
+
+
+def _finite(value):
+    """JSON-safe: non-finite floats become None (JSON has no NaN or Infinity)."""
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    if isinstance(value, float | np.floating) and not math.isfinite(value):
+        return None
+    if isinstance(value, np.generic):
+        return value.item()
+    return value

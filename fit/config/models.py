@@ -45,6 +45,8 @@ class FitSettings(StrictModel):
     """Samples per pixel of the final Jacobian render that gives the uncertainty."""
     downscale: PositiveInt = 1
     """Area-average the photos by this factor before anything (the cameras follow)."""
+    holdout: NonNegativeInt = 0
+    """Views kept out of the fit and only scored (spread over the views, never the first)."""
     phases: list[Phase] = Field(default_factory=lambda: list(DEFAULT_SCHEDULE), min_length=1)
     """The schedule: solver phases run in turn (absent: the default schedule)."""
 

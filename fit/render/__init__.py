@@ -2,6 +2,7 @@
 the `Renderer` of a capture's views (render, VJP, Jacobian) and the one JAX <-> Dr.Jit bridge.
 Import after the Mitsuba variant is chosen (`fit.variant.select_variant`)."""
 
+from .bake import bake_texture
 from .bridge import make_render
 from .image import render
 from .renderer import GRAD_SEED_OFFSET, Renderer
@@ -11,6 +12,7 @@ __all__ = [
     "GRAD_SEED_OFFSET",
     "MATERIAL_PREFIX",
     "Renderer",
+    "bake_texture",
     "coverage_dict",
     "make_render",
     "material_keys",

@@ -3,7 +3,9 @@ values, and its derivatives (reverse: a vector-Jacobian product; forward: the fu
 
 from __future__ import annotations
 
+import gc
 import re
+from contextlib import contextmanager
 
 import drjit as dr
 import mitsuba as mi
@@ -14,8 +16,71 @@ from captures.capture import Capture
 from ..material import Free
 from .scene import MATERIAL_PREFIX, scene_dict
 
+#: Sensors whose derived Dr.Jit members (sample-to-camera transform, ray differentials, the
+#: normalisation; thin lens also `x_fov`) are evaluated at load time (`dr::make_opaque`) but not
+#: declared to Dr.Jit's frozen-function traversal (no `MI_TRAVERSE_CB` in Mitsuba 3.9.1's
+#: orthographic.cpp / thinlens.cpp; perspective.cpp has one). A frozen render that reads them
+#: fails with `record(): Variable ... was created before recording was started`.
+_UNTRAVERSED_SENSORS = ("OrthographicCamera", "ThinLensCamera")
 
-def _primal(scene, seed, spp: int):
+
+def _rebuild_sensor(scene, x_fov: float | None) -> None:
+    """Inside a frozen function: rebuild such a sensor's derived members from Python scalars, so
+    every variable the recording reads is an input or created while recording (a tiny kernel,
+    replayed with the render). A no-op for other sensors."""
+    sensor = scene.sensors()[0]
+    if sensor.class_name() not in _UNTRAVERSED_SENSORS:
+        return
+    if x_fov is not None:  # thin lens: its evaluated x_fov feeds the projection
+        mi.traverse(sensor)["x_fov"] = x_fov
+    # a non-empty key list without "to_world": with it (or empty) Endpoint re-reads the
+    # transform's value into its scalar copy, a read that a recording refuses
+    sensor.parameters_changed(["x_fov"])
+
+
+def _sensor_fov(scene) -> float | None:
+    """A thin-lens sensor's field of view as a Python float (read before any recording), for
+    `_rebuild_sensor`; None for other sensors."""
+    sensor = scene.sensors()[0]
+    if sensor.class_name() != "ThinLensCamera":
+        return None
+    return float(mi.traverse(sensor)["x_fov"][0])
+
+
+def _reverse_pass(scene, grad_in, seed, spp: int, keys: tuple, x_fov: float | None = None) -> list:
+    """Gradients of `<grad_in, render>` with respect to the parameters at `keys` (a frozen
+    function's body: Dr.Jit inputs only, the AD state set and cleared inside)."""
+    _rebuild_sensor(scene, x_fov)
+    params = mi.traverse(scene)
+    for key in keys:
+        dr.enable_grad(params[key])
+    params.update()
+    scene.integrator().render_backward(scene, params, grad_in, seed=seed, spp=spp)
+    grads = [dr.grad(params[key]) for key in keys]
+    for key in keys:
+        dr.disable_grad(params[key])
+    return grads
+
+
+@contextmanager
+def _no_gc():
+    """Keep Python's cyclic garbage collector from running during a frozen call. Freeing a loaded
+    `mi.Scene` (or any Dr.Jit array made from NumPy) while Dr.Jit 1.5 records a frozen function
+    aborts the process (`RecordThreadState::enqueue_host_func(): this function cannot be
+    recorded!`, thrown from a destructor: std::terminate, not a Python exception), and the
+    collector can run at any allocation inside the recording and free, e.g., an earlier
+    Renderer's scenes."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
+
+
+def _primal(scene, seed, spp: int, x_fov: float | None = None):
+    _rebuild_sensor(scene, x_fov)
     return mi.render(scene, spp=spp, seed=seed)
 
 
@@ -98,20 +163,10 @@ class Renderer:
         freeze = freeze and not any(f.shape for f in free)
         wrap = dr.freeze if freeze else (lambda f: f)
         self._primal = [wrap(_primal) for _ in self.scenes]
-        self._reverse = [wrap(self._reverse_pass) for _ in self.scenes]
-
-    def _reverse_pass(self, scene, grad_in, seed, spp: int, keys: tuple) -> list:
-        """Gradients of `<grad_in, render>` with respect to the parameters at `keys` (a frozen
-        function's body: Dr.Jit inputs only, the AD state set and cleared inside)."""
-        params = mi.traverse(scene)
-        for key in keys:
-            dr.enable_grad(params[key])
-        params.update()
-        scene.integrator().render_backward(scene, params, grad_in, seed=seed, spp=spp)
-        grads = [dr.grad(params[key]) for key in keys]
-        for key in keys:
-            dr.disable_grad(params[key])
-        return grads
+        # a module function, not a bound method: a Renderer holding its own bound methods is a
+        # reference cycle, freed only by the cyclic collector, possibly inside a later recording
+        self._reverse = [wrap(_reverse_pass) for _ in self.scenes]
+        self._fov = [_sensor_fov(s) for s in self.scenes]
 
     def _set(self, v: int, values: np.ndarray, grad: bool = False) -> None:
         """Set view `v`'s parameters from a flat physical vector (with `grad`, AD-enabled before
@@ -143,7 +198,9 @@ class Renderer:
         out = []
         for v, scene in enumerate(self.scenes):
             self._set(v, values)
-            image = self._primal[v](scene, mi.UInt32(int(seed) + 7919 * v), spp)
+            seed_v = mi.UInt32(int(seed) + 7919 * v)
+            with _no_gc():
+                image = self._primal[v](scene, seed_v, spp, self._fov[v])
             out.append(np.asarray(image, dtype=np.float32)[..., :3].ravel())
         return np.concatenate(out)
 
@@ -161,7 +218,8 @@ class Renderer:
             )
             seed_v = mi.UInt32(int(seed) + 7919 * v + GRAD_SEED_OFFSET)
             keys = tuple(k for ks in self.targets[v] for k in ks)
-            grads = iter(self._reverse[v](scene, grad_in, seed_v, spp, keys))
+            with _no_gc():
+                grads = iter(self._reverse[v](scene, grad_in, seed_v, spp, keys, self._fov[v]))
             i = 0
             for f, ks in zip(self.free, self.targets[v], strict=True):
                 for key in ks:

@@ -53,7 +53,17 @@ def sensor_dict(camera: Camera, spp: int) -> dict:
 def rect_light_dict(light: RectLight) -> dict:
     """Mitsuba's `rectangle` spans [-1, 1]^2 with normal +z: scale by size/2 along u and v and map
     +z to the emission direction (the normal transforms to `emit_direction` since it is orthogonal
-    to both edges)."""
+    to both edges).
+
+    The card gets a `null` BSDF: rays pass through it both ways, as through an area light in
+    Cycles (invisible from behind). Without it Mitsuba gives the shape a default
+    diffuse BSDF whose back side is black, so a camera behind the light saw a black card over the
+    object. Emission from the front is still found by BSDF-sampled rays (MIS weighted as before;
+    a null surface counts as a delta vertex, so paths continuing through it stay unbiased) and by
+    emitter sampling. Shadow rays still stop at the card (`path`/`prb` test geometry only), but a
+    BSDF-sampled path through it counts what lies behind with full weight, so expected values
+    do not change, only the noise in the card's shadow. Seen from the front by the camera the
+    emission stays visible (Mitsuba has no per-shape camera visibility)."""
     u, v, n = (
         np.asarray(x, dtype=float) for x in (light.u_axis, light.v_axis, light.emit_direction)
     )
@@ -65,6 +75,7 @@ def rect_light_dict(light: RectLight) -> dict:
     return {
         "type": "rectangle",
         "to_world": mi.ScalarTransform4f(m.tolist()),
+        "bsdf": {"type": "null"},
         "emitter": {"type": "area", "radiance": {"type": "rgb", "value": list(light.radiance)}},
     }
 
@@ -136,9 +147,7 @@ def environment_dict(scene: Scene) -> dict | None:
     return None
 
 
-def scene_dict(
-    scene: Scene, bsdf: Material | dict | mi.BSDF, view: int = 0, spp: int = 64
-) -> dict:
+def scene_dict(scene: Scene, bsdf: Material | dict | mi.BSDF, view: int = 0, spp: int = 64) -> dict:
     """A Mitsuba scene dict of one view; the material's traverse keys are `MATERIAL_PREFIX` + its
     own keys (`material_keys`)."""
     if isinstance(bsdf, Material):

@@ -3,6 +3,7 @@ and the Gauss-Newton uncertainty. No Mitsuba import at module level (renders com
 `Problem`)."""
 
 from .base import AbstractSolver, Options, Outcome, PhaseReport, Result
+from .checkpoint import Checkpoint
 from .problem import LOSSES, Problem, residuals, shape_loss
 from .registry import SOLVERS
 from .schedule import DEFAULT_SCHEDULE, Phase, run_schedule, solve
@@ -14,6 +15,7 @@ __all__ = [
     "MAX_UNCERTAINTY_PARAMS",
     "SOLVERS",
     "AbstractSolver",
+    "Checkpoint",
     "Options",
     "Outcome",
     "Phase",

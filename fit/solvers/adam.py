@@ -30,7 +30,20 @@ class Adam(AbstractSolver):
     name = "adam"
     Options = AdamOptions
 
-    def run(self, problem, u0, *, steps, spp, seed, downscale, options, progress=None) -> Result:
+    def run(
+        self,
+        problem,
+        u0,
+        *,
+        steps,
+        spp,
+        seed,
+        downscale,
+        options,
+        progress=None,
+        resume=None,
+        offer=None,
+    ) -> Result:
         render = problem.render_fn("reverse", spp, downscale)
         residual = residuals(problem, render, downscale, independent_gains=True)
 
@@ -43,9 +56,18 @@ class Adam(AbstractSolver):
         f_struct = jax.ShapeDtypeStruct((), jnp.float32)
         state = solver.init(loss, u, jnp.int32(seed), {}, f_struct, None, frozenset())
         step = jax.jit(lambda u, s, st: solver.step(loss, u, s, {}, st, frozenset())[:2])
-        history, tail, rejected = [], [], 0
+        history, tail, rejected, first = [], [], 0, 0
+        if resume is not None:  # the state offered at step `first`
+            leaves, treedef = jax.tree.flatten(state)
+            saved = [
+                jnp.asarray(v, dtype=x.dtype) for x, v in zip(leaves, resume["leaves"], strict=True)
+            ]
+            state = jax.tree.unflatten(treedef, saved)
+            u, first = jnp.asarray(resume["u"], jnp.float32), int(resume["step"])
+            history, rejected = list(resume["history"]), int(resume["rejected"])
+            tail = list(np.asarray(resume["tail"]))
         first_averaged = steps - round(options.average * steps)
-        for i in range(steps):
+        for i in range(first, steps):
             new_u, new_state = step(u, jnp.int32(seed * 100003 + i + 1), state)
             value = float(new_state.f)  # the loss at `u`, before this update
             if np.all(np.isfinite(np.asarray(new_u))) and np.isfinite(value):
@@ -57,6 +79,17 @@ class Adam(AbstractSolver):
                 tail.append(np.asarray(u))
             if progress:
                 progress(i + 1, value)
+            if offer:
+                offer(
+                    {
+                        "step": i + 1,
+                        "u": np.asarray(u),
+                        "leaves": [np.asarray(x) for x in jax.tree.leaves(state)],
+                        "history": list(history),
+                        "tail": np.asarray(tail, np.float32).reshape(len(tail), np.size(u0)),
+                        "rejected": rejected,
+                    }
+                )
         if tail:
             u = jnp.asarray(np.mean(tail, axis=0))
         u = np.asarray(u)

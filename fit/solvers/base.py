@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import abc
 import enum
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import ClassVar
@@ -86,9 +87,15 @@ class AbstractSolver(abc.ABC):
         downscale: int,
         options: Options,
         progress: Progress | None = None,
+        resume: dict | None = None,
+        offer: Callable[[dict], None] | None = None,
     ) -> Result:
         """Minimise `problem`'s loss from the unconstrained vector `u0`; the result's
-        `reports` holds this phase's report (outcome, steps, rejected steps)."""
+        `reports` holds this phase's report (outcome, steps, rejected steps).
+
+        Solvers that can stop mid-phase `offer` their state (arrays and JSON-able values; the
+        optimiser's state as `leaves`) after each step, and continue from such a state given as
+        `resume`; others restart the phase."""
 
 
 def optimistix_result(name: str, problem: Problem, solution, u0, loss_at, progress) -> Result:
@@ -96,11 +103,13 @@ def optimistix_result(name: str, problem: Problem, solution, u0, loss_at, progre
     non-finite answer is never applied (the phase's start is kept, and the outcome says so).
     `loss_at(u)` is the loss at the answer."""
     u = np.asarray(solution.value)
-    finite = bool(np.all(np.isfinite(u)))
+    loss = float(loss_at(u)) if np.all(np.isfinite(u)) else math.nan
+    finite = math.isfinite(loss)
     if not finite:
         u = np.asarray(u0)
+        loss = float(loss_at(u))
     outcome, message = _optimistix_outcome(solution, finite)
-    loss, taken = float(loss_at(u)), int(solution.stats["num_steps"])
+    taken = int(solution.stats["num_steps"])
     if progress:
         progress(taken, loss)
     report = PhaseReport(name, outcome, taken, message=message, loss=loss)
@@ -112,13 +121,14 @@ def _optimistix_outcome(solution, finite: bool) -> tuple[Outcome, str]:
     import optimistix as optx
 
     if not finite:
-        return Outcome.DIVERGED, "the solver's answer was not finite; kept the phase's start"
+        return Outcome.DIVERGED, "the loss at the solver's answer was not finite; kept the start"
     if bool(solution.result == optx.RESULTS.successful):
         return Outcome.CONVERGED, ""
     message = str(optx.RESULTS[solution.result])
     steps_out = solution.result == optx.RESULTS.max_steps_reached
     if bool(steps_out) or bool(solution.result == optx.RESULTS.nonlinear_max_steps_reached):
         return Outcome.STEP_LIMIT, message
-    if bool(solution.result == optx.RESULTS.nonlinear_divergence):
+    diverged = (optx.RESULTS.nonlinear_divergence, optx.RESULTS.nonfinite)
+    if any(bool(solution.result == r) for r in (*diverged, optx.RESULTS.nonfinite_input)):
         return Outcome.DIVERGED, message
     return Outcome.FAILED, message

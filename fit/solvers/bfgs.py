@@ -23,7 +23,9 @@ class BFGS(AbstractSolver):
     name = "bfgs"
     Options = BFGSOptions
 
-    def run(self, problem, u0, *, steps, spp, seed, downscale, options, progress=None) -> Result:
+    def run(
+        self, problem, u0, *, steps, spp, seed, downscale, options, progress=None, **_
+    ) -> Result:
         residual = residuals(problem, problem.render_fn("reverse", spp, downscale), downscale)
 
         def loss(u, seed):

@@ -29,7 +29,9 @@ class LevenbergMarquardt(AbstractSolver):
     name = "lm"
     Options = LMOptions
 
-    def run(self, problem, u0, *, steps, spp, seed, downscale, options, progress=None) -> Result:
+    def run(
+        self, problem, u0, *, steps, spp, seed, downscale, options, progress=None, **_
+    ) -> Result:
         render = problem.render_fn("jacobian", spp, downscale, options.jacobian_spp)
         independent = options.jacobian_spp is not None
         residual = residuals(problem, render, downscale, independent_gains=independent)

@@ -18,7 +18,8 @@ from pydantic import (
 
 from captures.model import FieldError
 
-from .base import Options, Result
+from .base import Options, Outcome, PhaseReport, Result
+from .checkpoint import Checkpoint
 from .problem import Problem
 from .registry import SOLVERS
 from .uncertainty import MAX_UNCERTAINTY_PARAMS, uncertainty
@@ -124,16 +125,41 @@ def run_schedule(
     seed: int = 0,
     progress: Callable[[int, int, float], None] | None = None,
     uncertainty_spp: int = 64,
+    checkpoint: Checkpoint | None = None,
+    resume: bool = False,
 ) -> Result:
     """Run `phases` in turn from `start` (phase k uses seed + k), then the uncertainty at the
     result (up to `MAX_UNCERTAINTY_PARAMS` components). `progress(phase, step, loss)` after
     every step a solver reports and at the end of each phase. Each phase's report (outcome,
-    steps, rejected steps, wall time) is in the result's `reports`."""
+    steps, rejected steps, wall time) is in the result's `reports`.
+
+    With a `checkpoint` the state is saved every interval of work and at each phase's end; with
+    `resume` the run continues from the saved state (seeds follow from the phase and step, so
+    the run ends where an uninterrupted one would, to float rounding)."""
     u = problem.unconstrained(start)
     history, steps, ends, reports = [], 0, [], []
+    saved = checkpoint.load() if checkpoint is not None and resume else None
+    first = 0
+    if saved is not None:
+        first, u = int(saved["phase"]), np.asarray(saved["u_phase"], np.float32)
+        history, ends = list(saved["history_before"]), list(saved["ends"])
+        reports = [PhaseReport(**{**r, "outcome": Outcome(r["outcome"])}) for r in saved["reports"]]
+        steps = sum(r.steps for r in reports)
     result = Result(problem.values(u), u, float("nan"), 0)
-    for k, phase in enumerate(phases):
+    for k in range(first, len(phases)):
+        phase = phases[k]
         report = (lambda i, value, k=k: progress(k, i, value)) if progress else None
+        done = {
+            "phase": k,
+            "u_phase": np.asarray(u, np.float32),
+            "history_before": list(history),
+            "ends": list(ends),
+            "reports": [r.as_dict() for r in reports],
+        }
+        offer = (
+            (lambda state, done=done: checkpoint.offer({**done, **state})) if checkpoint else None
+        )
+        in_phase = saved if saved is not None and k == first and "step" in saved else None
         began = time.perf_counter()
         result = SOLVERS[phase.solver]().run(
             problem,
@@ -144,6 +170,8 @@ def run_schedule(
             downscale=phase.downscale,
             options=phase.options,
             progress=report,
+            resume=in_phase,
+            offer=offer,
         )
         result.reports[-1].seconds = time.perf_counter() - began
         if progress:
@@ -152,6 +180,17 @@ def run_schedule(
         reports += result.reports
         u, steps = result.u, steps + result.steps
         ends.append(len(history))
+        if checkpoint is not None:  # a phase's end is always saved
+            checkpoint.latest = {
+                "phase": k + 1,
+                "u_phase": np.asarray(u, np.float32),
+                "history_before": list(history),
+                "ends": list(ends),
+                "reports": [r.as_dict() for r in reports],
+            }
+            checkpoint.flush()
+            if checkpoint.stop:
+                raise KeyboardInterrupt
     result.steps, result.history, result.phase_ends, result.reports = steps, history, ends, reports
     if len(u) <= MAX_UNCERTAINTY_PARAMS:
         result.std, result.correlation, result.poorly_determined = uncertainty(

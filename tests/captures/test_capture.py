@@ -121,8 +121,30 @@ def test_downscale_by_area():
     small, w = downscale(image, weight, 2)
     assert small.shape == (2, 2, 3) and w[0, 0] == 0.75 and w[1, 1] == 1
     np.testing.assert_allclose(small[0, 0], image[[0, 1, 1], [1, 0, 1]].mean(0))
-    with pytest.raises(CaptureError, match="does not divide"):
-        downscale(image, weight, 3)
+    # any size: 4 / 3 rounds to 1 pixel of 4 x 4 input pixels, centred, all of the image
+    one, w1 = downscale(image, weight, 3)
+    assert one.shape == (1, 1, 3) and w1[0, 0] == pytest.approx(15 / 16)
+    np.testing.assert_allclose(one[0, 0], image.reshape(-1, 3)[1:].mean(0), rtol=1e-6)
+
+
+def test_downscale_of_odd_sizes_keeps_square_centred_pixels():
+    """153 x 128 by 2: 76 x 64 square pixels 153/76 wide, centred; a linear ramp's area
+    averages are the ramp at the pixel centres (to the input pixels' steps), and the rows past
+    the image lose weight."""
+    h, w = 128, 153
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    image = np.stack([x + 0.5, y + 0.5, np.ones_like(x)], axis=-1)
+    small, weight = downscale(image, np.ones((h, w), np.float32), 2)
+    assert small.shape == (64, 76, 3)
+    size = w / 76
+    centres_x = (np.arange(76) + 0.5) * size
+    centres_y = (h - 64 * size) / 2 + (np.arange(64) + 0.5) * size
+    inside = weight > 0.999
+    # the image is constant per input pixel: area averages differ from the ramp by < 1/100
+    ramp_x, ramp_y = np.tile(centres_x, (64, 1)), np.tile(centres_y[:, None], (1, 76))
+    np.testing.assert_allclose(small[..., 0][inside], ramp_x[inside], atol=0.01)
+    np.testing.assert_allclose(small[..., 1][1:-1], ramp_y[1:-1], atol=0.01)
+    assert weight[0].max() < 1 and weight[-1].max() < 1 and inside[1:-1].all()
 
 
 def test_diligent_loads_with_normalised_lights(shared_data):

@@ -15,7 +15,7 @@ import pytest
 from captures.capture import Capture, View
 from fit.config import load_render_config
 from fit.material import resolve, to_physical, to_unconstrained
-from fit.render import GRAD_SEED_OFFSET, Renderer, make_render, render, scene_dict
+from fit.render import GRAD_SEED_OFFSET, MATERIAL_PREFIX, Renderer, make_render, render, scene_dict
 from fit.solvers import Phase, Problem, run_schedule, solve, uncertainty
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -52,16 +52,12 @@ def truth_vector():
 
 def test_free_parameters_resolve_and_round_trip(problem):
     free = problem.free
-    assert [f.traverse for f in free] == [
-        "object.bsdf.pigment.value",
-        "object.bsdf.roughness",
-        "object.bsdf.ior",
-    ]
+    assert [f.traverse for f in free] == ["pigment.value", "roughness", "ior"]
     u = to_unconstrained(free, TRUTH)
     np.testing.assert_allclose(to_physical(free, u), truth_vector(), rtol=1e-6)
-    with pytest.raises(KeyError, match="not a declared parameter"):
+    with pytest.raises(KeyError, match=r"not a built parameter; known: glaze\.pigment"):
         resolve(problem.material, ["glaze.shininess"])
-    with pytest.raises(KeyError, match="is a glaze, not clay"):
+    with pytest.raises(KeyError, match="no layer 'clay' is built"):
         resolve(problem.material, ["clay.sigma"])
 
 
@@ -92,7 +88,9 @@ def test_bridge_gradient_equals_mitsubas_own(problem):
     renderer._set(0, x, grad=True)
     image = mi.render(scene, params, spp=256, seed=5)
     dr.backward(dr.mean(image[..., :3]))
-    own = np.concatenate([np.ravel(dr.grad(params[f.traverse])) for f in problem.free])
+    own = np.concatenate(
+        [np.ravel(dr.grad(params[MATERIAL_PREFIX + f.traverse])) for f in problem.free]
+    )
     renderer._set(0, x)  # drop the AD state
     for grad in grads:
         np.testing.assert_allclose(grad, own, rtol=0.1, atol=0.1 * np.abs(own).max())
@@ -293,7 +291,7 @@ def test_independent_gain_render_keeps_value_and_cost(monkeypatch):
     (v_same, g_same), (v_indep, g_indep) = loss(False), loss(True)
     assert calls == {"render": 3, "vjp": 2}
     assert float(v_same) == float(v_indep)
-    np.testing.assert_allclose(g_indep[:3], g_same[:3], rtol=1e-5)
+    np.testing.assert_allclose(g_indep[:3], g_same[:3], rtol=1e-4)  # parallel atomics' rounding
     assert not np.allclose(g_indep[3:], g_same[3:], rtol=1e-3)
 
 

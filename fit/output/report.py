@@ -1,0 +1,270 @@
+"""The report of a fit: one self-contained HTML page (inline CSS, no scripts, nothing fetched)
+with its PNGs beside it in `report/`; every file written whole or not at all."""
+
+from __future__ import annotations
+
+import html
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from captures.files import atomic_path, write_text
+from captures.images import srgb_encode
+
+from .figures import pyplot, save_figure
+
+DIFF_RANGE = 0.2  # the difference map's colour range, in units of the view's exposure
+DASH, PLUS_MINUS = "\u2014", "\u00b1 "
+
+
+@dataclass
+class ViewPanel:
+    """One view of the fit: the photo, the fitted render (gains applied), the validity weight."""
+
+    name: str
+    photo: np.ndarray  # (H, W, 3) linear float32
+    render: np.ndarray  # (H, W, 3) linear float32, the fitted render (gains applied)
+    weight: np.ndarray  # (H, W) validity weight in [0, 1]
+    held_out: bool  # not used by the fit (scored only)
+    rmse: float  # relative RMSE of render vs photo over valid pixels
+
+
+CSS = """body { font: 14px/1.4 sans-serif; margin: 0 auto; padding: 1em 2em; max-width: 1100px; }
+h1 { margin-bottom: .2em; } h2 { margin-top: 1.6em; border-bottom: 1px solid #ccc; }
+.meta { color: #555; } .meta span { margin-right: 1.5em; }
+img { max-width: 100%; height: auto; display: block; }
+figure { margin: 1em 0; padding: .5em; border: 2px solid #8ab; border-radius: 6px; }
+figure.held { border: 2px dashed #d80; background: #fff8ee; }
+figcaption { font-weight: 600; margin-bottom: .3em; }
+.badge { background: #d80; color: #fff; border-radius: 4px; padding: 0 .5em; margin-left: .6em; }
+.scroll { overflow-x: auto; } table { border-collapse: collapse; font-size: 13px; }
+th, td { border: 1px solid #ddd; padding: 2px 8px; text-align: right; vertical-align: top; }
+th { background: #f2f2f2; text-align: center; }
+td.key, td.text { text-align: left; font-family: monospace; }
+td.text { font-family: inherit; max-width: 28em; overflow-wrap: anywhere; }
+tr.poor td, span.poor { background: #fff3c4; } tr.off td, span.off { background: #ffd9d9; }
+td.bad { color: #b00; font-weight: 600; }
+.masks { display: flex; flex-wrap: wrap; gap: 1em; } .masks figure { border-color: #ccc; }
+.masks img { width: 200px; image-rendering: pixelated; border: 1px solid #999; }"""
+
+
+def _e(value) -> str:
+    return html.escape(str(value))
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_.") or "x"
+
+
+def _array(value) -> np.ndarray | None:
+    try:
+        return None if value is None else np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        return None
+
+
+def _fmt(value, signed: bool = False) -> str:
+    """A number as text; RGB as 3 numbers; textures as "N texels, mean m"; unknown as a dash."""
+    arr = _array(value)
+    if arr is None:
+        return DASH if value is None else _e(value)
+    form = "{:+.3g}" if signed else "{:.4g}"
+    if arr.size <= 3:
+        return ", ".join(form.format(v) for v in arr.ravel())
+    texels = arr.size if arr.ndim <= 1 else arr.size // arr.shape[-1]
+    return f"{texels} texels, mean {form.format(float(np.nanmean(arr)))}"
+
+
+def _view_png(view: ViewPanel, path: Path) -> Path:
+    """Photo | fitted render | (render - photo) / exposure with its colour bar, invalid grey."""
+    plt = pyplot()
+    valid = np.asarray(view.weight) > 0
+    photo, render = np.asarray(view.photo, np.float32), np.asarray(view.render, np.float32)
+    exposure = max(float(np.percentile(photo[valid], 99)) if valid.any() else 1.0, 1e-12)
+    diff = np.where(valid, (render - photo).mean(axis=-1) / exposure, np.nan)
+    h, w = valid.shape
+    fig, axes = plt.subplots(1, 3, figsize=(10, 10 / 3.3 * h / w + 0.35), layout="constrained")
+    for ax, image, name in zip(axes, (photo, render), ("photo", "fitted render"), strict=False):
+        ax.imshow(srgb_encode(image / exposure))
+        ax.set_title(name, fontsize=9)
+    cmap = plt.get_cmap("coolwarm").with_extremes(bad="0.6")
+    shown = axes[2].imshow(diff, cmap=cmap, vmin=-DIFF_RANGE, vmax=DIFF_RANGE)
+    axes[2].set_title("(render \u2212 photo) / exposure", fontsize=9)
+    fig.colorbar(shown, ax=axes[2], fraction=0.046, extend="both")
+    for ax in axes:
+        ax.axis("off")
+    return save_figure(fig, path)
+
+
+def _loss_png(summary: dict, path: Path) -> Path | None:
+    """Semilog loss per step, one colour per phase; a phase of one point as a marker."""
+    history = _array(summary.get("history"))
+    if history is None or history.ndim != 1 or not np.any(np.isfinite(history) & (history > 0)):
+        return None
+    history = np.where(np.isfinite(history) & (history > 0), history, np.nan)
+    ends = [int(e) for e in summary.get("phase_ends") or []] or [history.size]
+    phases = summary.get("phases") or []
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(7, 3.4), layout="constrained")
+    begin = 0
+    for k, stop in enumerate(ends):
+        end = min(stop, history.size)
+        p = phases[k] if k < len(phases) and isinstance(phases[k], dict) else {}
+        label = f"{k + 1}: {p.get('solver', '?')}, {p.get('spp', '?')} spp, "
+        label += f"1/{p.get('downscale', '?')} res"
+        ax.semilogy(
+            np.arange(begin, end), history[begin:end], "o" if end - begin == 1 else "-", label=label
+        )
+        begin = end
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss (weighted)")
+    ax.set_title("per phase, at its own resolution and spp", fontsize=9)
+    ax.legend(fontsize=8)
+    return save_figure(fig, path, dpi=100)
+
+
+def _correlation_png(corr: np.ndarray, labels: list[str], path: Path) -> Path:
+    """Heat map in -1..1 (diverging), labels on both axes, values written when <= 20 rows."""
+    plt = pyplot()
+    n = corr.shape[0]
+    size = min(3.0 + 0.28 * n, 14.0)
+    font = 8 if n <= 20 else max(3.0, 160 / n)
+    fig, ax = plt.subplots(figsize=(size + 1.5, size), layout="constrained")
+    shown = ax.imshow(corr, cmap="RdBu_r", vmin=-1, vmax=1, interpolation="nearest")
+    ax.set_xticks(range(n), labels, rotation=90, fontsize=font)
+    ax.set_yticks(range(n), labels, fontsize=font)
+    if n <= 20:
+        for (i, j), v in np.ndenumerate(corr):
+            if np.isfinite(v):
+                colour = "white" if abs(v) > 0.6 else "black"
+                ax.text(j, i, f"{v:.2f}", ha="center", va="center", fontsize=7, color=colour)
+    fig.colorbar(shown, ax=ax, fraction=0.046)
+    return save_figure(fig, path)
+
+
+def _mask_png(mask: np.ndarray, path: Path) -> Path:
+    """A mask in [0, 1] as a grey image, one pixel per pixel."""
+    mask = np.asarray(mask, dtype=np.float32)
+    mask = mask.mean(axis=-1) if mask.ndim == 3 else mask
+    with atomic_path(path) as partial:
+        pyplot().imsave(partial, np.clip(mask, 0, 1), cmap="gray", vmin=0, vmax=1, format="png")
+    return path
+
+
+def _table(head: list[str], rows: list[tuple[str, list[str]]]) -> str:
+    """An HTML table; `rows` are (row class, cells as HTML)."""
+    out = ["<div class='scroll'><table><tr>", *(f"<th>{_e(h)}</th>" for h in head), "</tr>"]
+    out += [f"<tr class='{cls}'>{''.join(cells)}</tr>" for cls, cells in rows]
+    return "".join(out) + "</table></div>"
+
+
+def _td(text: str, cls: str = "") -> str:
+    return f"<td class='{cls}'>{text}</td>"
+
+
+def _parameter_rows(summary: dict) -> list[tuple[str, list[str]]]:
+    """key, start, fitted, std, truth, error, error/std; poorly determined and > 3 std marked."""
+    values, start = summary.get("values") or {}, summary.get("start") or {}
+    std, truth, error = (summary.get(k) or {} for k in ("std", "truth", "error"))
+    poor = set(summary.get("poorly_determined") or [])
+    rows = []
+    for key in dict.fromkeys([*values, *start]):
+        err, sd, ratio = _array(error.get(key)), _array(std.get(key)), None
+        if err is not None and sd is not None and err.shape == sd.shape:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = np.where(sd > 0, err / sd, np.nan)
+        off = ratio is not None and bool(np.any(np.abs(ratio) > 3))
+        if ratio is not None and np.all(np.isnan(ratio)):
+            ratio = None
+        cls = " ".join(c for c, on in (("poor", key in poor), ("off", off)) if on)
+        cells = [_td(_e(key), "key"), _td(_fmt(start.get(key))), _td(_fmt(values.get(key)))]
+        cells += [_td(DASH if sd is None else PLUS_MINUS + _fmt(sd)), _td(_fmt(truth.get(key)))]
+        cells += [_td(_fmt(err, signed=True)), _td(_fmt(ratio, signed=True), "bad" if off else "")]
+        rows.append((cls, cells))
+    return rows
+
+
+def _outcome_rows(summary: dict) -> list[tuple[str, list[str]]]:
+    rows = []
+    for o in summary.get("outcomes") or []:
+        bad = "bad" if o.get("outcome") in ("diverged", "failed") else ""
+        cells = [
+            _td(_e(o.get("solver", DASH)), "key"),
+            _td(_e(o.get("outcome", DASH)), f"key {bad}"),
+        ]
+        cells += [_td(_fmt(o.get(k))) for k in ("steps", "rejected", "seconds")]
+        rows.append(("", [*cells, _td(_e(o.get("message") or ""), "text")]))
+    return rows
+
+
+def _header(summary: dict, title: str) -> str:
+    wall = summary.get("wall_time_s")
+    wall = f"{wall:.1f} s" if isinstance(wall, int | float) else DASH
+    soft = ", ".join(f"{_e(k)} {_e(v)}" for k, v in (summary.get("software") or {}).items())
+    return (
+        f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{_e(title)}</title>"
+        f"<style>{CSS}</style></head><body><h1>{_e(title)}</h1><p class='meta'>"
+        f"<span>capture: <b>{_e(summary.get('capture') or DASH)}</b></span>"
+        f"<span>wall time: <b>{wall}</b></span><span>final loss: <b>{_fmt(summary.get('loss'))}"
+        f"</b></span><br><span>software: {soft or DASH}</span></p>"
+    )
+
+
+def _img(png: Path | None, alt: str, missing: str) -> str:
+    return f"<img src='report/{_e(png.name)}' alt='{_e(alt)}'>" if png else f"<p>{missing}</p>"
+
+
+def write_report(
+    out: Path,
+    summary: dict,
+    views: list[ViewPanel],
+    masks: dict[str, np.ndarray] | None = None,
+    title: str | None = None,
+) -> Path:
+    """Write out/report.html and its PNGs beside it (out/report/...) ; returns the html path."""
+    out, summary = Path(out), summary or {}
+    assets = out / "report"
+    title = title or Path(str(summary.get("config") or "fit")).name
+    page = [_header(summary, title), "<h2>Views</h2>"]
+    for i, view in enumerate(views):
+        png = _view_png(view, assets / f"view-{i:02d}-{_slug(view.name)}.png")
+        badge = "<span class='badge'>held out</span>" if view.held_out else ""
+        page.append(
+            f"<figure class='{'held' if view.held_out else 'fit'}'><figcaption>{_e(view.name)}"
+            f" \u2014 relative RMSE {_fmt(view.rmse)}{badge}</figcaption>"
+            f"{_img(png, f'{view.name}: photo, render, difference', '')}</figure>"
+        )
+    page.append("" if views else "<p>No views.</p>")
+
+    page.append("<h2>Loss per phase</h2>")
+    page.append(_img(_loss_png(summary, assets / "loss.png"), "loss", "No loss history."))
+
+    page.append(
+        "<h2>Parameters</h2><p class='meta'><span class='poor'>poorly determined</span>"
+        "<span class='off'>|error| &gt; 3 std</span></p>"
+    )
+    head = ["key", "start", "fitted", "\u00b1 std", "truth", "error", "error / std"]
+    page.append(_table(head, _parameter_rows(summary)))
+
+    page.append("<h2>Phase outcomes</h2>")
+    head = ["solver", "outcome", "steps", "rejected", "seconds", "message"]
+    page.append(_table(head, _outcome_rows(summary)))
+
+    page.append("<h2>Correlation</h2>")
+    corr, png = _array(summary.get("correlation")), None
+    if corr is not None and corr.ndim == 2 and corr.shape[0] == corr.shape[1] and corr.size:
+        labels = [str(x) for x in summary.get("correlation_labels") or []]
+        labels = labels if len(labels) == len(corr) else [str(i) for i in range(len(corr))]
+        png = _correlation_png(corr, labels, assets / "correlation.png")
+    page.append(_img(png, "correlation matrix", "No correlation matrix (no uncertainty estimate)."))
+
+    if masks:
+        page.append("<h2>Fitted masks</h2><div class='masks'>")
+        for i, (key, mask) in enumerate(masks.items()):
+            png = _mask_png(mask, assets / f"mask-{i:02d}-{_slug(key)}.png")
+            page.append(f"<figure>{_img(png, key, '')}<figcaption>{_e(key)}</figcaption></figure>")
+        page.append("</div>")
+    page.append("</body></html>\n")
+    return write_text(out / "report.html", "\n".join(page))

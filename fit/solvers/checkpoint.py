@@ -1,0 +1,80 @@
+"""Checkpoints of a running schedule: the solver's state saved atomically every ~30 s of work, so
+that a killed fit resumes losing at most one interval.
+
+A checkpoint is one `.npz` file: a JSON `meta` entry (phase, step, history, finished phases'
+reports, seeds follow from them) and the arrays (the vector, the optimiser's state leaves, the
+averaged iterates). Adam saves within its phase; LM and BFGS (one optimistix call each) at their
+ends.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from captures.files import atomic_path
+
+#: Seconds of work between checkpoints (`LAYERFIT_CHECKPOINT_SECONDS` overrides, for tests).
+INTERVAL = 30.0
+
+
+class Checkpoint:
+    """Where and how often a schedule's state is saved; `offer` each step, `flush` on demand."""
+
+    def __init__(self, path: Path, interval: float | None = None):
+        self.path = Path(path)
+        env = os.environ.get("LAYERFIT_CHECKPOINT_SECONDS")
+        self.interval = interval if interval is not None else float(env or INTERVAL)
+        self.latest: dict | None = None
+        self.stop = False  # set (by a Ctrl-C handler) to stop at the next step
+        self._last = time.monotonic()
+
+    def offer(self, state: dict) -> None:
+        """Remember `state` as the latest; write it when an interval has passed. Raises
+        `KeyboardInterrupt` here, between steps, once `stop` is set."""
+        self.latest = state
+        if time.monotonic() - self._last >= self.interval:
+            self.flush()
+        if self.stop:
+            raise KeyboardInterrupt
+
+    def flush(self) -> None:
+        """Write the latest state now (a reader never sees half a file)."""
+        if self.latest is None:
+            return
+        meta, arrays = {}, {}
+        for key, value in self.latest.items():
+            if isinstance(value, np.ndarray):
+                arrays[key] = value
+            elif key == "leaves":
+                arrays |= {f"leaf_{i}": np.asarray(v) for i, v in enumerate(value)}
+                meta["n_leaves"] = len(value)
+            else:
+                meta[key] = value
+        buffer = io.BytesIO()
+        np.savez(buffer, meta=np.array(json.dumps(meta)), **arrays)
+        with atomic_path(self.path) as tmp:
+            tmp.write_bytes(buffer.getvalue())
+        self._last = time.monotonic()
+
+    def load(self) -> dict | None:
+        """The saved state, or None when there is no checkpoint."""
+        if not self.path.exists():
+            return None
+        with np.load(self.path) as data:
+            state = json.loads(str(data["meta"]))
+            n = state.pop("n_leaves", None)
+            for key in data.files:
+                if key != "meta" and not key.startswith("leaf_"):
+                    state[key] = data[key]
+            if n is not None:
+                state["leaves"] = [data[f"leaf_{i}"] for i in range(n)]
+        return state
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)

@@ -1,0 +1,171 @@
+"""The HTML report of a fit: its files, and that it opens cleanly in headless Chromium (every
+image loads, no console errors, nothing fetched from outside, nothing wider than the window)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fit.output import ViewPanel, write_report
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    "--disable-dev-shm-usage",  # containers often have a small /dev/shm
+]
+IN_CI = os.environ.get("CI", "").lower() not in ("", "0", "false")
+OUTCOME_KEYS = ("solver", "outcome", "steps", "rejected", "message", "loss", "seconds")
+LABELS = ["glaze.pigment[0]", "glaze.pigment[1]", "glaze.pigment[2]", "glaze.roughness"]
+
+
+def fake_fit(rng: np.random.Generator) -> tuple[dict, list[ViewPanel], dict]:
+    """A summary.json as `layerfit fit` writes it, 3 views (the last held out), one mask."""
+    summary = {
+        "config": "configs/<glazed> & sphere-fit.toml",  # characters that need escaping
+        "capture": "out/glazed-sphere-capture",
+        "values": {
+            "glaze.pigment": [0.61, 0.32, 0.2],
+            "glaze.roughness": 0.18,
+            "base.albedo": rng.random(48).tolist(),
+            "glaze.ior": 1.52,
+        },
+        "std": {"glaze.pigment": [0.01, 0.01, 0.02], "glaze.roughness": 0.004, "glaze.ior": 0.3},
+        "truth": {"glaze.pigment": [0.6, 0.3, 0.2], "glaze.roughness": 0.2, "glaze.ior": 1.5},
+        "error": {"glaze.pigment": [0.01, 0.02, 0.0], "glaze.roughness": -0.02, "glaze.ior": 0.02},
+        "start": {
+            "glaze.pigment": [0.5, 0.5, 0.5],
+            "glaze.roughness": 0.3,
+            "base.albedo": [0.5] * 48,
+            "glaze.ior": 1.5,
+        },
+        "correlation": np.corrcoef(rng.random((4, 10))).tolist(),
+        "correlation_labels": LABELS,
+        "history": (np.geomspace(1.0, 1e-3, 60) * (1 + 0.1 * rng.random(60))).tolist(),
+        "phase_ends": [40, 59, 60],
+        "phases": [
+            {"solver": "adam", "steps": 40, "spp": 8, "downscale": 2},
+            {"solver": "adam", "steps": 19, "spp": 32, "downscale": 1},
+            {"solver": "lm", "steps": 10, "spp": 32, "downscale": 1},
+        ],
+        "outcomes": [
+            dict(zip(OUTCOME_KEYS, row, strict=True))
+            for row in [
+                ("adam", "step_limit", 40, 0, "", 0.01, 12.5),
+                ("adam", "converged", 19, 1, "one step <rejected> as non-finite", 0.002, 30.1),
+                ("lm", "diverged", 1, 0, "kept the start", 0.002, 8.0),
+            ]
+        ],
+        "poorly_determined": ["glaze.ior"],
+        "wall_time_s": 51.3,
+        "software": {"layerfit": "0.1.0", "mitsuba": "3.9.1"},
+        "views": [{"name": f"view_{i:02d}", "rmse": 0.05, "held_out": i == 2} for i in range(3)],
+    }
+    views = []
+    for i in range(3):
+        photo = rng.random((24, 32, 3), dtype=np.float32)
+        weight = np.ones((24, 32), np.float32)
+        weight[:4] = 0  # an invalid band: grey in the difference
+        render = (photo * rng.uniform(0.9, 1.1, photo.shape)).astype(np.float32)
+        views.append(ViewPanel(f"view_{i:02d}", photo, render, weight, i == 2, 0.04 + 0.01 * i))
+    masks = {"glaze.mask": rng.random((24, 32, 1), dtype=np.float32)}
+    return summary, views, masks
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("fit")
+    summary, views, masks = fake_fit(np.random.default_rng(3))
+    return write_report(out, summary, views, masks)
+
+
+def test_report_files(report: Path):
+    assert report == report.parent / "report.html"
+    pngs = sorted(p.name for p in (report.parent / "report").iterdir())
+    assert pngs == [
+        "correlation.png",
+        "loss.png",
+        "mask-00-glaze.mask.png",
+        "view-00-view_00.png",
+        "view-01-view_01.png",
+        "view-02-view_02.png",
+    ]
+    text = report.read_text(encoding="utf-8")
+    assert "&lt;glazed&gt; &amp; sphere-fit.toml" in text and "<glazed>" not in text
+    assert text.count("class='badge'>held out") == 1
+    assert "one step &lt;rejected&gt; as non-finite" in text
+    assert "48 texels, mean" in text
+    assert "<tr class='off'>" in text  # roughness is 5 std off: highlighted
+    assert "<tr class='poor'>" in text  # glaze.ior
+    assert not list(report.parent.rglob(".*partial*"))  # no temporary files left behind
+
+
+def test_report_without_optional_parts(tmp_path: Path):
+    """A summary with every optional key missing still gives a page (dashes, no figures)."""
+    html = write_report(tmp_path, {"values": {"glaze.roughness": 0.2}}, []).read_text("utf-8")
+    assert "<title>fit</title>" in html and "No loss history." in html
+    assert not (tmp_path / "report").exists()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if not CHROMIUM.exists():
+        if IN_CI:
+            pytest.fail(
+                f"{CHROMIUM} is missing: CI must install Debian's chromium (scripts/test.sh)"
+            )
+        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium; scripts/test.sh does)")
+    if IN_CI:
+        from playwright.sync_api import sync_playwright
+    else:
+        sync_playwright = pytest.importorskip("playwright.sync_api").sync_playwright
+    with sync_playwright() as p:
+        chromium = p.chromium.launch(
+            executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS
+        )
+        yield chromium
+        chromium.close()
+
+
+def open_report(browser, html: Path) -> list[str]:
+    """Problems of the page in Chromium: images that did not load, console errors, requests
+    that left the report's folder, content wider than a 1280 px window."""
+    problems = []
+    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    page.on("console", lambda m: m.type == "error" and problems.append(f"console: {m.text}"))
+    page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+    page.on(
+        "request",
+        lambda r: r.url.startswith("file://") or problems.append(f"external request: {r.url}"),
+    )
+    page.goto(html.resolve().as_uri(), wait_until="load")
+    broken = page.evaluate(
+        "Array.from(document.images)"
+        ".filter(i => !i.complete || i.naturalWidth === 0).map(i => i.getAttribute('src'))"
+    )
+    problems += [f"image not loaded: {src}" for src in broken]
+    if page.evaluate("document.documentElement.scrollWidth > window.innerWidth"):
+        problems.append("the page is wider than the window")
+    page.close()
+    return problems
+
+
+def test_report_opens_in_chromium(browser, report: Path):
+    assert open_report(browser, report) == []
+
+
+def test_broken_image_is_caught(browser, report: Path, tmp_path: Path):
+    copy = tmp_path / "copy"
+    shutil.copytree(report.parent, copy)
+    (copy / "report" / "loss.png").unlink()
+    problems = open_report(browser, copy / "report.html")
+    assert "image not loaded: report/loss.png" in problems
+    assert any(p.startswith("console:") for p in problems), problems
