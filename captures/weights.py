@@ -69,6 +69,6 @@ def downscale(image: np.ndarray, weight: np.ndarray, factor: int) -> tuple[np.nd
     cols = _box(new_w, w, size, 0.0)
     w_mean = rows @ weight.astype(np.float64) @ cols.T
     weighted = image.astype(np.float64) * weight[..., None]
-    sums = np.einsum("oh,hwc,pw->opc", rows, weighted, cols)
+    sums = np.einsum("owc,pw->opc", np.einsum("oh,hwc->owc", rows, weighted), cols)
     out = np.where(w_mean[..., None] > 0, sums / np.maximum(w_mean[..., None], 1e-12), 0.0)
     return out.astype(np.float32), w_mean.astype(np.float32)

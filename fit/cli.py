@@ -183,6 +183,9 @@ def synth(
     exposure_ev: Annotated[
         float, typer.Option(help="Random exposure offset per view, +- EV.")
     ] = 0.0,
+    exposure_base: Annotated[
+        float, typer.Option(help="Exposure of every view, EV (negative: darker, fewer clipped).")
+    ] = 0.0,
     variant: VariantOption = None,
 ) -> None:
     """Render a synthetic capture (images, manifest, [truth]) from a config (or a preset with
@@ -207,7 +210,7 @@ def synth(
                 spp,
                 seed,
                 fmt,
-                Degradation(shot, read, exposure_ev),
+                Degradation(shot, read, exposure_ev, exposure_base),
                 lambda view, n: bar.update(tasks[view], completed=n),
             )
         except (FileExistsError, ValueError) as err:

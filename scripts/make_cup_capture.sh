@@ -8,7 +8,7 @@ cd "$(dirname "$0")/.."
 tmp=captures/samples/.cup-new
 rm -rf "$tmp"
 .venv/bin/layerfit synth configs/cup.toml --scene configs/cup-views.toml --out "$tmp" \
-    --format png --spp 1024 --seed 7 --shot 0.0004 --read 0.0015 --exposure-ev 0.4
+    --format png --spp ${SPP:-1024} --seed 7 --shot 0.0004 --read 0.0015 --exposure-ev 0.4 --exposure-base -2.3
 rm -rf captures/samples/cup
 mv "$tmp" captures/samples/cup
 du -sh captures/samples/cup

@@ -1,12 +1,8 @@
 #!/usr/bin/env bash
-# Set up, then run the main job on the bundled default: make a synthetic 3-view capture of the
-# glazed sphere (configs/glazed-sphere.toml, once) and fit its glaze back from a grey start
-# (configs/glazed-sphere-fit.toml); results in out/glazed-sphere-fit/.
+# Set up, then run the main job on the bundled default: fit the paper's four-layer cup
+# (configs/cup-fit.toml) to its bundled photographs (captures/samples/cup); the run folder is
+# out/cup-fit/ (preset.toml, summary.json, report.html), replaced on each run of this script.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
-if [ ! -f out/glazed-sphere-capture/capture.toml ]; then
-    .venv/bin/layerfit synth configs/glazed-sphere.toml --scene configs/glazed-sphere-views.toml \
-        --out out/glazed-sphere-capture
-fi
-.venv/bin/layerfit fit configs/glazed-sphere-fit.toml --out out/glazed-sphere-fit "$@"
+.venv/bin/layerfit fit configs/cup-fit.toml --out out/cup-fit --force "$@"

@@ -27,11 +27,13 @@ FORMATS = {"exr": ("exr", "linear"), "png": ("png", "srgb"), "jpg": ("jpg", "srg
 class Degradation:
     """Seeded photographic degradations: shot noise (variance `shot * signal`), read noise (std
     `read`), a random exposure offset per view (uniform in +-`exposure_ev`, recorded in the
-    manifest). JPEG compression comes with the jpg format."""
+    manifest) around a fixed `base_ev` for every view (negative: darker photos whose highlights do
+    not clip). JPEG compression comes with the jpg format."""
 
     shot: float = 0.0
     read: float = 0.0
     exposure_ev: float = 0.0
+    base_ev: float = 0.0
 
 
 def synthesize(
@@ -68,7 +70,7 @@ def synthesize(
             image = render(
                 loaded, spp, seed + 1000 * i, (lambda n, i=i: progress(i, n)) if progress else None
             )
-            ev = float(rng.uniform(-1, 1) * degradation.exposure_ev)
+            ev = degradation.base_ev + float(rng.uniform(-1, 1) * degradation.exposure_ev)
             image = image * 2.0**ev
             if degradation.shot > 0 or degradation.read > 0:
                 std = np.sqrt(degradation.shot * np.clip(image, 0, None) + degradation.read**2)

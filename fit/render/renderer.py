@@ -14,7 +14,7 @@ import numpy as np
 from captures.capture import Capture
 
 from ..material import Free
-from .scene import MATERIAL_PREFIX, scene_dict
+from .scene import MATERIAL_PREFIX, batch_sensor_dict, scene_dict
 
 #: Sensors whose derived Dr.Jit members (sample-to-camera transform, ray differentials, the
 #: normalisation; thin lens also `x_fov`) are evaluated at load time (`dr::make_opaque`) but not
@@ -122,62 +122,107 @@ def _like(current, values):
 GRAD_SEED_OFFSET = 0x5EED1
 
 
+class _Group:
+    """Views rendered together: one loaded scene (a `batch` sensor when several), its parameters
+    and, per free parameter, the traverse keys it sets (and emitter scales' configured values)."""
+
+    def __init__(self, capture: Capture, views: list[int], material, free: list[Free], wrap):
+        scene = scene_dict(capture.scene_of(views[0]), material, 0, 1)
+        if len(views) > 1:
+            scene["sensor"] = batch_sensor_dict([capture.views[i].camera for i in views], 1)
+        self.views, self.scene = views, mi.load_dict(scene)
+        self.params = mi.traverse(self.scene)
+        name = capture.views[views[0]].name
+        self.targets = [_targets(f, self.params, name) for f in free]
+        self.bases = {
+            k: np.asarray(self.params[k])
+            for f, ks in zip(free, self.targets, strict=True)
+            if f.emitter
+            for k in ks
+        }
+        self.params.keep([k for ks in self.targets for k in ks])
+        self.primal, self.reverse = wrap(_primal), wrap(_reverse_pass)
+        self.fov = _sensor_fov(self.scene)
+
+
 class Renderer:
     """Loaded scenes of a capture's views with one material; parameters `free` are set from flat
     physical vectors. Scalars stay opaque (the plugins mark them), so changing values or the
     sample count between calls does not recompile kernels. All outputs are float32, views
-    flattened and concatenated.
+    flattened and concatenated in the capture's order.
 
-    With `freeze` (the default) primal renders and reverse passes are Dr.Jit frozen functions,
-    one per view: recorded at the first call per spp, replayed after without re-tracing the path
-    tracer in Python (measured on the Cycles sphere at 8 spp: 1.7x faster primal, 2.1x faster
-    reverse pass; identical values). Forward-mode Jacobians are not frozen, nor anything when a
-    texture is free: replaying a frozen render after a bitmap's data was replaced crashed
-    (segmentation fault, Dr.Jit 1.5 / Mitsuba 3.9, measured with a 16x16 mask texture)."""
+    Views that share the scene's lights and their size render together through one `batch`
+    sensor (side by side in one film): one kernel per pass for all of them, where one scene per
+    view compiles one per view (the cup's reverse pass: ~15 s of LLVM each on 2 cores). Views
+    with their own lights (photometric stereo) get a scene each.
 
-    def __init__(self, capture: Capture, material: dict, free: list[Free], freeze: bool = True):
+    With `freeze` (the default) primal renders and reverse passes are Dr.Jit frozen functions:
+    recorded at the first call per spp, replayed after without re-tracing the path tracer in
+    Python (measured on the Cycles sphere at 8 spp: 1.7x faster primal, 2.1x faster reverse
+    pass). A batch of thin-lens or orthographic cameras is not frozen: Mitsuba 3.9 does not
+    declare them to the recording, and the batch calls them virtually (measured on the cup, five
+    thin-lens views of 64x56: one batch re-traced at ~1 s an Adam step after one compile; five
+    frozen scenes, one per view, had not finished their first step after 3.5 minutes of
+    compiling, at 128x112). Nothing is frozen when a texture is
+    free (replaying a frozen render after a bitmap's data was replaced crashed: segmentation
+    fault, Dr.Jit 1.5 / Mitsuba 3.9, a 16x16 mask texture)."""
+
+    def __init__(
+        self,
+        capture: Capture,
+        material: dict,
+        free: list[Free],
+        freeze: bool = True,
+        batch: bool = True,
+    ):
         self.free = free
-        self.scenes = [
-            mi.load_dict(scene_dict(capture.scene_of(i), material, 0, 1))
-            for i in range(len(capture.views))
-        ]
-        self.params = [mi.traverse(s) for s in self.scenes]
-        # per view, per free parameter: the traverse keys it sets, and for emitter scales the
-        # configured values they multiply
-        self.targets, self.bases = [], []
-        for v, params in enumerate(self.params):
-            targets = [_targets(f, params, capture.views[v].name) for f in free]
-            self.targets.append(targets)
-            self.bases.append(
-                {
-                    k: np.asarray(params[k])
-                    for f, ks in zip(free, targets, strict=True)
-                    if f.emitter
-                    for k in ks
-                }
-            )
-            params.keep([k for ks in targets for k in ks])
-        self.shapes = [(v.camera.height, v.camera.width, 3) for v in capture.views]
+        views = capture.views
+        self.shapes = [(v.camera.height, v.camera.width, 3) for v in views]
         self.size = int(sum(np.prod(s) for s in self.shapes))
         self.n_params = sum(f.size for f in free)
+        batched = (
+            batch
+            and len(views) > 1
+            and all(v.lights is None for v in views)
+            and len({s[:2] for s in self.shapes}) == 1
+        )
         freeze = freeze and not any(f.shape for f in free)
-        wrap = dr.freeze if freeze else (lambda f: f)
-        self._primal = [wrap(_primal) for _ in self.scenes]
+        pinholes = all(
+            v.camera.kind == "perspective" and not v.camera.aperture_radius for v in views
+        )
         # a module function, not a bound method: a Renderer holding its own bound methods is a
         # reference cycle, freed only by the cyclic collector, possibly inside a later recording
-        self._reverse = [wrap(_reverse_pass) for _ in self.scenes]
-        self._fov = [_sensor_fov(s) for s in self.scenes]
+        frozen = dr.freeze if freeze else (lambda f: f)
+        if batched and not pinholes:
+            frozen = lambda f: f  # noqa: E731
+        groups = [list(range(len(views)))] if batched else [[i] for i in range(len(views))]
+        self.groups = [_Group(capture, g, material, free, frozen) for g in groups]
+        self.scenes = [g.scene for g in self.groups]
+        self.params = [g.params for g in self.groups]
 
-    def _set(self, v: int, values: np.ndarray, grad: bool = False) -> None:
-        """Set view `v`'s parameters from a flat physical vector (with `grad`, AD-enabled before
+    def _split(self, group: _Group, image) -> list[np.ndarray]:
+        """A group's image (views side by side) as its views' flat images."""
+        image = np.asarray(image, np.float32)[..., :3]
+        w = self.shapes[group.views[0]][1]
+        return [image[:, k * w : (k + 1) * w].ravel() for k in range(len(group.views))]
+
+    def _join(self, group: _Group, flat_views: list[np.ndarray]) -> np.ndarray:
+        """Views' flat images (cotangents) side by side as the group's image."""
+        shapes = [self.shapes[v] for v in group.views]
+        parts = [f.reshape(s) for f, s in zip(flat_views, shapes, strict=True)]
+        return np.ascontiguousarray(np.concatenate(parts, axis=1), np.float32)
+
+    def _set(self, g: int | _Group, values: np.ndarray, grad: bool = False) -> None:
+        """Set a group's parameters from a flat physical vector (with `grad`, AD-enabled before
         the update, so values the plugins derive in `parameters_changed` carry derivatives)."""
-        params, i = self.params[v], 0
-        for f, keys in zip(self.free, self.targets[v], strict=True):
+        group = self.groups[g] if isinstance(g, int) else g
+        params, i = group.params, 0
+        for f, keys in zip(self.free, group.targets, strict=True):
             chunk = values[i : i + f.size]
             for key in keys:
                 current = params[key]
                 if f.emitter:
-                    value = _like(current, self.bases[v][key] * float(chunk[0]))
+                    value = _like(current, group.bases[key] * float(chunk[0]))
                 else:
                     value = _like(current, chunk)
                 if grad:
@@ -186,50 +231,53 @@ class Renderer:
             i += f.size
         params.update()
 
-    def _tangent(self, v: int, f: Free, key: str, component: int):
-        """d params[key] / d (component of f) at view v."""
+    def _tangent(self, group: _Group, f: Free, key: str, component: int | None):
+        """d params[key] / d (component of f) in a group (zero when `component` is None), as an
+        opaque value: every column's forward pass then traces the same kernel, compiled once."""
         if f.emitter:
-            return _like(self.params[v][key], self.bases[v][key])
-        tangent = np.zeros(f.size)
-        tangent[component] = 1.0
-        return _like(self.params[v][key], tangent)
+            tangent = group.bases[key] * (0.0 if component is None else 1.0)
+        else:
+            tangent = np.zeros(f.size)
+            if component is not None:
+                tangent[component] = 1.0
+        value = _like(group.params[key], tangent)
+        dr.make_opaque(value)
+        return value
+
+    def _offsets(self) -> list[int]:
+        return list(np.cumsum([0] + [int(np.prod(s)) for s in self.shapes]))
 
     def render(self, values: np.ndarray, seed: int, spp: int) -> np.ndarray:
         out = []
-        for v, scene in enumerate(self.scenes):
-            self._set(v, values)
-            seed_v = mi.UInt32(int(seed) + 7919 * v)
+        for g, group in enumerate(self.groups):
+            self._set(group, values)
+            seed_g = mi.UInt32(int(seed) + 7919 * g)
             with _no_gc():
-                image = self._primal[v](scene, seed_v, spp, self._fov[v])
-            out.append(np.asarray(image, dtype=np.float32)[..., :3].ravel())
+                image = group.primal(group.scene, seed_g, spp, group.fov)
+            out += self._split(group, image)
         return np.concatenate(out)
 
     def vjp(self, values: np.ndarray, seed: int, spp: int, cotangent: np.ndarray) -> np.ndarray:
         """Gradient of `<cotangent, render(values)>` with respect to `values`."""
         grad = np.zeros(self.n_params, np.float32)
-        offset = 0
-        for v, scene in enumerate(self.scenes):
-            n = int(np.prod(self.shapes[v]))
-            self._set(v, values)
-            grad_in = mi.TensorXf(
-                np.ascontiguousarray(
-                    cotangent[offset : offset + n].reshape(self.shapes[v]), np.float32
-                )
-            )
-            seed_v = mi.UInt32(int(seed) + 7919 * v + GRAD_SEED_OFFSET)
-            keys = tuple(k for ks in self.targets[v] for k in ks)
+        offsets = self._offsets()
+        for g, group in enumerate(self.groups):
+            self._set(group, values)
+            flat = [cotangent[offsets[v] : offsets[v + 1]] for v in group.views]
+            grad_in = mi.TensorXf(self._join(group, flat))
+            seed_g = mi.UInt32(int(seed) + 7919 * g + GRAD_SEED_OFFSET)
+            keys = tuple(k for ks in group.targets for k in ks)
             with _no_gc():
-                grads = iter(self._reverse[v](scene, grad_in, seed_v, spp, keys, self._fov[v]))
+                grads = iter(group.reverse(group.scene, grad_in, seed_g, spp, keys, group.fov))
             i = 0
-            for f, ks in zip(self.free, self.targets[v], strict=True):
+            for f, ks in zip(self.free, group.targets, strict=True):
                 for key in ks:
-                    g = np.asarray(next(grads), np.float64)
+                    d = np.asarray(next(grads), np.float64)
                     if f.emitter:  # d/ds of base * s
-                        grad[i] += float(np.sum(g.reshape(-1) * self.bases[v][key].reshape(-1)))
+                        grad[i] += float(np.sum(d.reshape(-1) * group.bases[key].reshape(-1)))
                     else:
-                        grad[i : i + f.size] += np.ravel(g).astype(np.float32)
+                        grad[i : i + f.size] += np.ravel(d).astype(np.float32)
                 i += f.size
-            offset += n
         return grad
 
     def jacobian(
@@ -247,20 +295,24 @@ class Renderer:
             (seed, spp) if jacobian_spp is None else (seed + GRAD_SEED_OFFSET, jacobian_spp)
         )
         jac = np.zeros((self.size, self.n_params), np.float32)
-        offset = 0
-        for v, scene in enumerate(self.scenes):
-            n = int(np.prod(self.shapes[v]))
-            params, column = self.params[v], 0
-            for f, keys in zip(self.free, self.targets[v], strict=True):
+        offsets = self._offsets()
+        for g, group in enumerate(self.groups):
+            params, column = group.params, 0
+            for f in self.free:
                 for c in range(f.size):
-                    self._set(v, values, grad=True)
-                    for key in keys:
-                        dr.set_grad(params[key], self._tangent(v, f, key, c))
-                    out = scene.integrator().render_forward(
-                        scene, params, seed=int(j_seed) + 7919 * v, spp=j_spp
+                    self._set(group, values, grad=True)
+                    # every parameter gets a tangent (zero but this column's): one AD graph, one
+                    # kernel for all columns (a tangent on one parameter alone is a new kernel,
+                    # ~10 s of LLVM each for the cup)
+                    for other, other_keys in zip(self.free, group.targets, strict=True):
+                        for key in other_keys:
+                            on = c if other is f else None
+                            dr.set_grad(params[key], self._tangent(group, other, key, on))
+                    out = group.scene.integrator().render_forward(
+                        group.scene, params, seed=int(j_seed) + 7919 * g, spp=j_spp
                     )
-                    jac[offset : offset + n, column] = np.asarray(out, np.float32)[..., :3].ravel()
+                    for v, part in zip(group.views, self._split(group, out), strict=True):
+                        jac[offsets[v] : offsets[v + 1], column] = part
                     column += 1
-            self._set(v, values)  # drop the AD state
-            offset += n
+            self._set(group, values)  # drop the AD state
         return image, jac

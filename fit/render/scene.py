@@ -167,6 +167,24 @@ def scene_dict(scene: Scene, bsdf: Material | dict | mi.BSDF, view: int = 0, spp
     return out
 
 
+def batch_sensor_dict(cameras, spp: int) -> dict:
+    """One `batch` sensor rendering same-sized cameras side by side into one film (width: the
+    cameras' widths together): all views of a capture in one kernel, compiled once."""
+    width, height = cameras[0].width, cameras[0].height
+    children = {}
+    for i, camera in enumerate(cameras):
+        child = sensor_dict(camera, spp)
+        del child["film"], child["sampler"]
+        children[f"view_{i}"] = child
+    film = sensor_dict(cameras[0], spp)["film"]
+    return {
+        **children,
+        "type": "batch",
+        "film": {**film, "width": width * len(cameras), "height": height},
+        "sampler": {"type": "independent", "sample_count": spp},
+    }
+
+
 def coverage_dict(scene: Scene, view: int = 0, spp: int = 64) -> dict:
     """A scene whose render is each pixel's object coverage in [0, 1] (the object emits 1, nothing
     else is lit), through the same camera and pixel filter as `scene_dict`."""

@@ -196,6 +196,11 @@ def test_obj_and_envmap_paths_resolve_against_the_file(tmp_path):
     assert scene.environment == EnvMap(tmp_path / "sky.exr", 1.0)
 
 
+def rect_light(**extra) -> dict:
+    """A scene table with one rectangle light facing the origin, plus `extra` keys."""
+    return {"lights": [{"center": [1, 1, 1], "target": [0, 0, 0], "size": [1, 1], **extra}]}
+
+
 @pytest.mark.parametrize(
     "change, message",
     [
@@ -231,35 +236,15 @@ def test_obj_and_envmap_paths_resolve_against_the_file(tmp_path):
             "scene.cameras[0].ortho_width: missing; add it",
         ),
         (
-            {"lights": [{"center": [1, 1, 1], "target": [0, 0, 0], "size": [1, 1]}]},
+            rect_light(),
             "needs exactly one of radiance or power",
         ),
         (
-            {
-                "lights": [
-                    {
-                        "center": [1, 1, 1],
-                        "target": [0, 0, 0],
-                        "size": [1, 1],
-                        "power": 1,
-                        "radiance": [1, 1, 1],
-                    }
-                ]
-            },
+            rect_light(power=1, radiance=[1, 1, 1]),
             "needs exactly one of radiance or power",
         ),
         (
-            {
-                "lights": [
-                    {
-                        "center": [1, 1, 1],
-                        "target": [0, 0, 0],
-                        "size": [1, 1],
-                        "power": 1,
-                        "temperature": 500,
-                    }
-                ]
-            },
+            rect_light(power=1, temperature=500),
             "scene.lights[0].temperature: 500 K is outside",
         ),
         (
@@ -267,17 +252,7 @@ def test_obj_and_envmap_paths_resolve_against_the_file(tmp_path):
             "scene.lights[0].type: got 'spot'; choose one of rectangle, point, directional",
         ),
         (
-            {
-                "lights": [
-                    {
-                        "center": [1, 1, 1],
-                        "target": [0, 0, 0],
-                        "size": [1, 1],
-                        "power": 1,
-                        "colour": [1, 1, 1],
-                    }
-                ]
-            },
+            rect_light(power=1, colour=[1, 1, 1]),
             "scene.lights[0].colour: unknown key; known: color, temperature, type",
         ),
         ({"lights": [], "environment": [0, 0, 0]}, "the scene has no light"),

@@ -112,9 +112,11 @@ def test_peer_sphere_with_schlick(shared_data):
     assert 0.0 < values["glaze.ior"] - truth["glaze.ior"] < 0.035
 
 
+@pytest.mark.slow
 def test_peer_torus_is_recovered_with_a_light_in_view(shared_data):
     """configs/peer-torus.toml, all five views (view_04 sees the torus past the back of light 0,
-    which Cycles does not draw): alpha within 5 %, ior within 0.03, pigment within 0.02."""
+    which Cycles does not draw): alpha within 5 %, ior within 0.03, pigment within 0.02 (passes;
+    88 s on 2 cores, hence the slow target)."""
     result, truth = fit_peer("peer-torus.toml")
     values = result.values
     np.testing.assert_allclose(values["glaze.pigment"], truth["glaze.pigment"], atol=0.02)

@@ -29,14 +29,13 @@ def small_sphere():
 
 def test_synth_round_trip(tmp_path):
     cfg, scene = small_sphere()
-    out = synthesize(
-        scene,
-        cfg.material,
-        tmp_path / "cap",
-        spp=16,
-        seed=3,
-        degradation=Degradation(exposure_ev=0.5),
-    )
+
+    def make(folder):
+        return synthesize(
+            scene, cfg.material, folder, spp=16, seed=3, degradation=Degradation(exposure_ev=0.5)
+        )
+
+    out = make(tmp_path / "cap")
     capture = load_capture(out)
     assert capture.truth == {
         "glaze.pigment": [0.1, 0.22, 0.55],
@@ -54,14 +53,7 @@ def test_synth_round_trip(tmp_path):
     np.testing.assert_allclose(view.image, again, rtol=1e-4, atol=1e-6)
     # deterministic: same config and seed, same pixels up to float rounding (the film sums each
     # pixel's samples with parallel atomics, whose order varies)
-    out2 = synthesize(
-        scene,
-        cfg.material,
-        tmp_path / "cap2",
-        spp=16,
-        seed=3,
-        degradation=Degradation(exposure_ev=0.5),
-    )
+    out2 = make(tmp_path / "cap2")
     np.testing.assert_allclose(
         read_image(out / "view_00.exr"), read_image(out2 / "view_00.exr"), rtol=1e-5, atol=1e-7
     )
