@@ -13,7 +13,7 @@ import numpy as np
 
 from captures.capture import Capture
 
-from ..material import Free
+from ..material import Free, Material
 from .scene import MATERIAL_PREFIX, batch_sensor_dict, scene_dict
 
 #: Sensors whose derived Dr.Jit members (sample-to-camera transform, ray differentials, the
@@ -141,6 +141,8 @@ class _Group:
             for k in ks
         }
         self.params.keep([k for ks in self.targets for k in ks])
+        # module functions, not bound methods: a Renderer holding its own bound methods is a
+        # reference cycle, freed only by the cyclic collector, possibly inside a later recording
         self.primal, self.reverse = wrap(_primal), wrap(_reverse_pass)
         self.fov = _sensor_fov(self.scene)
 
@@ -163,14 +165,14 @@ class Renderer:
     declare them to the recording, and the batch calls them virtually (measured on the cup, five
     thin-lens views of 64x56: one batch re-traced at ~1 s an Adam step after one compile; five
     frozen scenes, one per view, had not finished their first step after 3.5 minutes of
-    compiling, at 128x112). Nothing is frozen when a texture is
-    free (replaying a frozen render after a bitmap's data was replaced crashed: segmentation
-    fault, Dr.Jit 1.5 / Mitsuba 3.9, a 16x16 mask texture)."""
+    compiling, at 128x112). Nothing is frozen when a texture is free (replaying a frozen render
+    after a bitmap's data was replaced crashed: segmentation fault, Dr.Jit 1.5 / Mitsuba 3.9, a
+    16x16 mask texture)."""
 
     def __init__(
         self,
         capture: Capture,
-        material: dict,
+        material: Material | dict,
         free: list[Free],
         freeze: bool = True,
         batch: bool = True,
@@ -186,17 +188,13 @@ class Renderer:
             and all(v.lights is None for v in views)
             and len({s[:2] for s in self.shapes}) == 1
         )
-        freeze = freeze and not any(f.shape for f in free)
         pinholes = all(
             v.camera.kind == "perspective" and not v.camera.aperture_radius for v in views
         )
-        # a module function, not a bound method: a Renderer holding its own bound methods is a
-        # reference cycle, freed only by the cyclic collector, possibly inside a later recording
-        frozen = dr.freeze if freeze else (lambda f: f)
-        if batched and not pinholes:
-            frozen = lambda f: f  # noqa: E731
+        freeze = freeze and not any(f.shape for f in free) and (pinholes or not batched)
+        wrap = dr.freeze if freeze else (lambda f: f)
         groups = [list(range(len(views)))] if batched else [[i] for i in range(len(views))]
-        self.groups = [_Group(capture, g, material, free, frozen) for g in groups]
+        self.groups = [_Group(capture, g, material, free, wrap) for g in groups]
         self.scenes = [g.scene for g in self.groups]
         self.params = [g.params for g in self.groups]
 

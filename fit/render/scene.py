@@ -175,7 +175,7 @@ def batch_sensor_dict(cameras, spp: int) -> dict:
     for i, camera in enumerate(cameras):
         child = sensor_dict(camera, spp)
         del child["film"], child["sampler"]
-        children[f"view_{i}"] = child
+        children[f"view_{i:04d}"] = child  # names sort as the views do
     film = sensor_dict(cameras[0], spp)["film"]
     return {
         **children,
