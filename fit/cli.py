@@ -146,15 +146,15 @@ def bench(
 
     tables = []
     with _progress() as bar:
-        if only in (None, "bsdf"):
-            tables.append(bsdf_speed_table(spp=spp, repeats=repeats, progress=bar))
-        if only in (None, "cup"):
-            tables.append(cup_speed_table(spp=spp, repeats=repeats, progress=bar))
-        if only == "fit":
-            try:
+        try:  # the scenes are read from configs/ under the working directory
+            if only in (None, "bsdf"):
+                tables.append(bsdf_speed_table(spp=spp, repeats=repeats, progress=bar))
+            if only in (None, "cup"):
+                tables.append(cup_speed_table(spp=spp, repeats=repeats, progress=bar))
+            if only == "fit":
                 tables.append(fit_trade_table(fit_config, progress=bar))
-            except (InputError, ValueError) as err:
-                raise _fail(err, 2) from None
+        except (InputError, ValueError) as err:
+            raise _fail(err, 2) from None
     for table in tables:
         console.print(table.rich())
     if out is not None:
