@@ -16,6 +16,7 @@ from pydantic import (
     model_validator,
 )
 
+from captures.errors import InputError
 from captures.model import FieldError
 
 from .base import Options, Outcome, PhaseReport, Result
@@ -140,6 +141,13 @@ def run_schedule(
     history, steps, ends, reports = [], 0, [], []
     saved = checkpoint.load() if checkpoint is not None and resume else None
     first = 0
+    if saved is not None and (
+        np.shape(saved["u_phase"]) != np.shape(u) or int(saved["phase"]) > len(phases)
+    ):
+        raise InputError(
+            f"{checkpoint.path}: was saved by a different fit (other free parameters, views or "
+            "phases); run without --resume (and --force) to start again"
+        )
     if saved is not None:
         first, u = int(saved["phase"]), np.asarray(saved["u_phase"], np.float32)
         history, ends = list(saved["history_before"]), list(saved["ends"])

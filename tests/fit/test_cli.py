@@ -103,3 +103,17 @@ def test_bench_table_runs():
     assert [row[0] for row in table.rows][:2] == ["principled", "glaze paper/schlick"]
     assert all(float(row[1]) > 0 for row in table.rows)
     assert "| glaze paper/exact |" in table.markdown()
+
+
+def test_render_a_preset_in_a_scene(tmp_path):
+    """`layerfit render PRESET --scene SCENE.toml`: a preset is usable wherever a material is;
+    without --scene it says what is missing."""
+    from fit.material import save_preset
+
+    material = load_render_config(DEFAULT).material
+    preset = save_preset(material.with_values({"glaze.roughness": 0.3}), tmp_path / "p.toml")
+    out = run_cli("render", preset, "--scene", DEFAULT, "--spp", 1, "--out", tmp_path / "r.png")
+    assert out.returncode == 0, out.stderr
+    assert (tmp_path / "r.exr").exists() and (tmp_path / "r.png").exists()
+    missing = run_cli("render", preset, "--out", tmp_path / "s.png")
+    assert missing.returncode == 2 and "give --scene" in missing.stderr

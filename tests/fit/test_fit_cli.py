@@ -174,3 +174,25 @@ def test_ctrl_c_saves_a_checkpoint_and_a_partial_report(tmp_path):
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["interrupted"] and 0 < len(summary["history"]) < 2000
     assert (tmp_path / "run" / "report.html").exists()
+
+
+def test_resume_refuses_a_checkpoint_of_another_fit(tmp_path):
+    """A checkpoint saved with other free parameters is refused in one line, before any work."""
+    from fit.solvers import Checkpoint
+
+    small_capture(tmp_path / "cap", spp=16)
+    (tmp_path / "fit.toml").write_text(RESUMABLE)
+    run = tmp_path / "run"
+    run.mkdir()
+    checkpoint = Checkpoint(run / "checkpoint.npz")
+    checkpoint.latest = {
+        "phase": 0,
+        "u_phase": np.zeros(7, np.float32),  # this config has 3 free components
+        "history_before": [],
+        "ends": [],
+        "reports": [],
+    }
+    checkpoint.flush()
+    out = run_cli("fit", tmp_path / "fit.toml", "--out", run, "--resume", timeout=300)
+    assert out.returncode == 2, out.stderr
+    assert "saved by a different fit" in out.stderr and "Traceback" not in out.stderr
