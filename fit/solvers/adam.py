@@ -80,13 +80,14 @@ class Adam(AbstractSolver):
             if progress:
                 progress(i + 1, value)
             if offer:
+                # references, not copies: the checkpoint converts them only when it writes
                 offer(
                     {
                         "step": i + 1,
-                        "u": np.asarray(u),
-                        "leaves": [np.asarray(x) for x in jax.tree.leaves(state)],
-                        "history": list(history),
-                        "tail": np.asarray(tail, np.float32).reshape(len(tail), np.size(u0)),
+                        "u": u,
+                        "leaves": jax.tree.leaves(state),
+                        "history": history,
+                        "tail": tail,
                         "rejected": rejected,
                     }
                 )

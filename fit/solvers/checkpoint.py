@@ -35,7 +35,8 @@ class Checkpoint:
         self._last = time.monotonic()
 
     def offer(self, state: dict) -> None:
-        """Remember `state` as the latest; write it when an interval has passed. Raises
+        """Remember `state` (it may hold references the caller keeps changing: it is converted
+        only when written) as the latest; write it when an interval has passed. Raises
         `KeyboardInterrupt` here, between steps, once `stop` is set."""
         self.latest = state
         if time.monotonic() - self._last >= self.interval:
@@ -49,11 +50,14 @@ class Checkpoint:
             return
         meta, arrays = {}, {}
         for key, value in self.latest.items():
-            if isinstance(value, np.ndarray):
-                arrays[key] = value
-            elif key == "leaves":
+            if key == "leaves":
                 arrays |= {f"leaf_{i}": np.asarray(v) for i, v in enumerate(value)}
                 meta["n_leaves"] = len(value)
+            elif key == "tail":  # the averaged iterates so far: (n, size of u)
+                size = np.size(self.latest["u"])
+                arrays[key] = np.asarray(value, np.float32).reshape(len(value), size)
+            elif hasattr(value, "shape"):  # numpy or JAX arrays
+                arrays[key] = np.asarray(value)
             else:
                 meta[key] = value
         buffer = io.BytesIO()
