@@ -314,7 +314,11 @@ def fit(
             summary = run_fit(
                 cfg, out, lambda k, n, loss: bar.update(tasks[k], completed=n), resume, holdout
             )
-        except (InputError, KeyError) as err:
+        except (InputError, KeyError) as err:  # before any work: leave no empty run folder
+            if out.is_dir() and not any(out.iterdir()):
+                out.rmdir()
+            if isinstance(err, KeyError):  # a free key: name the config it came from
+                err = ValueError(f"{config}: fit.free: {err.args[0]}")
             raise _fail(err, 2) from None
         except Interrupted:
             bar.stop()

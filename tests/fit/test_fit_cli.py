@@ -196,3 +196,12 @@ def test_resume_refuses_a_checkpoint_of_another_fit(tmp_path):
     out = run_cli("fit", tmp_path / "fit.toml", "--out", run, "--resume", timeout=300)
     assert out.returncode == 2, out.stderr
     assert "saved by a different fit" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_unknown_free_key_is_one_line_and_leaves_no_folder(tmp_path):
+    small_capture(tmp_path / "cap", spp=4)
+    (tmp_path / "fit.toml").write_text(CONFIG.replace("glaze.pigment", "glaze.shiny"))
+    out = run_cli("fit", tmp_path / "fit.toml", "--out", tmp_path / "run", timeout=300)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "fit.toml: fit.free: glaze.shiny: not a built parameter" in out.stderr
+    assert not (tmp_path / "run").exists()
