@@ -89,7 +89,7 @@ def _bake_rgb(plugin, size: int, glaze: bool) -> np.ndarray:
     """A loaded glaze's pigment (noise applied) or an RGB texture, as a (size, size, 3) image."""
     si = _grid(size)
     values = plugin.eval_pigment(si) if glaze else plugin.eval(si)
-    return np.asarray(values, np.float32).reshape(size, size, 3)
+    return np.asarray(values, np.float32).T.reshape(size, size, 3)  # Color3f: (3, N)
 
 
 def layer_dicts(material: Material) -> list[tuple[str, str, dict, dict | None]]:

@@ -117,6 +117,10 @@ def test_mitsuba_portable_cup_bakes_masks_and_stacks_blends(tmp_path):
     mask = read_image(path.parent / "lime.mask.exr")[..., 0]
     np.testing.assert_allclose(mask, bake_texture(material.bsdf["lime_mask"], 32, 32), atol=1e-6)
     assert mi.load_file(str(path)) is not None
+    # the glaze's pigment noise baked: its mean colour is the pigment (the noise has mean ~1)
+    colour = read_image(path.parent / "glaze.colour.exr")
+    assert np.allclose(colour.mean((0, 1)), [0.06, 0.20, 0.42], rtol=0.1)
+    assert colour.std((0, 1)).min() > 0.005
 
 
 @pytest.mark.slow
