@@ -8,10 +8,11 @@ Per layer (values from `mapping`):
 - the glaze -> the specular layer: `specular_ior` = ior, `specular_roughness` = the GGX r whose
   lobe is nearest its Beckmann alpha (alpha_GGX = r^2); an Oren-Nayar layer has
   `specular_weight` 0. The glaze is a dielectric directly over its pigment, which is OpenPBR's
-  dielectric base (specular over diffuse). The coat slot would add the coat's darkening of the
-  base (its internal reflections, `coat_darkening`), which the glaze does not have; with that off
-  and the specular off, a coat is the same GGX dielectric lobe, so the specular slot is the
-  better match;
+  dielectric base (specular over diffuse). The coat slot would darken the base by its internal
+  reflections, `(1 - K) / (1 - E_base K)` with K = 1 - (1 - F0) / ior^2 (`coat_darkening`):
+  at ior 1.5 the cup's pigment (0.06, 0.2, 0.42) would keep 0.44, 0.48, 0.56 of its value where
+  the glaze keeps 0.96 (1 - F at normal incidence); with the darkening off and the specular
+  off, a coat is the same GGX dielectric lobe. So the specular slot matches better;
 - layers bottom to top: `mix(fg = layer k, bg = the stack below, mix = mask k)`, each mask an
   `image` node reading the baked texture x fbm (linear EXR), which gives every layer its share
   `w_k = m_k prod_{j>k} (1 - m_j)`, as the native stack.
