@@ -243,6 +243,19 @@ def test_usd_single_glaze_is_constants(tmp_path):
     assert np.allclose(list(shader.GetInput("specularColor").Get()), [f0] * 3)
 
 
+def test_usd_textured_oren_nayar_bakes_its_texture(tmp_path):
+    """A texture-valued colour is baked texel for texel (scaled by the Lambert factor)."""
+    from captures.images import write_image
+
+    texels = np.random.default_rng(1).uniform(0.1, 0.9, (8, 8, 3)).astype(np.float32)
+    write_image(tmp_path / "albedo.exr", texels)
+    table = {"type": "oren_nayar", "reflectance": "albedo.exr", "sigma": 0.3}
+    preset = save_preset(build_material(table, tmp_path / "m.toml"), tmp_path / "m.toml")
+    path = export(preset, "usd", tmp_path / "usd", size=8)
+    baked = read_image(path.parent / "diffuseColor.exr")
+    np.testing.assert_allclose(baked, texels * lambert_scale(0.3), rtol=1e-5)
+
+
 # Mappings -----------------------------------------------------------------------------------------
 
 
