@@ -372,6 +372,60 @@ def fit(
     console.print(f"run folder: {out} (preset.toml, summary.json, report.html)", highlight=False)
 
 
+@app.command()
+def export(
+    preset: Annotated[
+        Path, typer.Argument(help="Preset (TOML) to export, e.g. a run's preset.toml.")
+    ],
+    to: Annotated[str, typer.Option("--to", help="Target: mitsuba, materialx or usd.")],
+    out: Annotated[
+        Path | None, typer.Option(help="New output folder (default out/<preset name>-<target>).")
+    ] = None,
+    portable: Annotated[
+        bool, typer.Option("--portable", help="Mitsuba: built-in plugins only (baked textures).")
+    ] = False,
+    force: Annotated[
+        bool, typer.Option("--force", help="Replace an existing non-empty output folder.")
+    ] = False,
+    size: Annotated[int, typer.Option(help="Texels per side of baked images.")] = 1024,
+    variant: VariantOption = None,
+) -> None:
+    """Export a preset to Mitsuba XML, MaterialX (OpenPBR) or USD (UsdPreviewSurface); what each
+    target holds exactly, approximates or loses: README, "Export"."""
+    from .export import TARGETS, check_output
+    from .material import load_preset
+
+    name = preset.parent.name if preset.stem == "preset" else preset.stem
+    out = out or Path("out") / f"{name}-{to}{'-portable' if portable else ''}"
+    try:
+        if to not in TARGETS:
+            raise InputError(f"--to {to!r}: choose one of {', '.join(TARGETS)}")
+        check_output(out, force)
+        loaded = load_preset(preset)
+    except InputError as err:
+        raise _fail(err, 2) from None
+    _start(variant)
+    from .export import export as export_preset
+
+    with _progress() as bar:
+        task = bar.add_task(
+            f"{to}: bake {size}x{size}" if to != "mitsuba" or portable else to, total=None
+        )
+        try:
+            path = export_preset(
+                loaded,
+                to,
+                out,
+                portable,
+                force,
+                size,
+                lambda done, total: bar.update(task, completed=done, total=total),
+            )
+        except InputError as err:
+            raise _fail(err, 2) from None
+    console.print(f"wrote {path}", highlight=False)
+
+
 def main() -> None:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:

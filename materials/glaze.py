@@ -67,7 +67,8 @@ class Glaze(mi.BSDF):
 
     # Noises ---------------------------------------------------------------------------------------
 
-    def _pigment(self, si, active):
+    def eval_pigment(self, si, active=True):
+        """The pigment at `si`, its noise applied (what exports bake to a texture)."""
         pigment = self.pigment.eval(si, active)
         if self.pigment_noise is None:
             return pigment
@@ -113,7 +114,7 @@ class Glaze(mi.BSDF):
         spec = d * g / (4.0 * dr.maximum(cos_v, 1e-12))
 
         # Diffuse pigment: Oren-Nayar times cos(theta_l)
-        pigment = self._pigment(si, active)
+        pigment = self.eval_pigment(si, active)
         diffuse = pigment * (dr.inv_pi * oren_nayar(wi, wo, self.sigma) * cos_l)
 
         # Fresnel coupling of the two lobes
@@ -136,7 +137,7 @@ class Glaze(mi.BSDF):
             return mi.Float(0.0)
         with dr.suspend_grad():
             f_v = fresnel(mi.Frame3f.cos_theta(si.wi), self.ior, self.fresnel)
-            w_diff = (1.0 - f_v) * dr.mean(self._pigment(si, active))
+            w_diff = (1.0 - f_v) * dr.mean(self.eval_pigment(si, active))
             prob = f_v / dr.maximum(f_v + w_diff, 1e-12)
             return dr.clip(prob, _MIN_LOBE_PROB, 1.0 - _MIN_LOBE_PROB)
 

@@ -1,0 +1,98 @@
+"""Exports of a preset to the tools artists render with: Mitsuba XML (native or `portable`),
+MaterialX (OpenPBR surface) and USD (UsdPreviewSurface). One module per target; `bake` holds the
+shared baking, `mapping` the fitted lobe maps. Import after the Mitsuba variant is chosen and
+`materials.register()` ran (baking evaluates the plugins)."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+from captures.files import atomic_path
+
+from ..errors import ConfigError
+from ..material import Preset, load_preset
+from .bake import Progress
+
+#: The targets, by `--to` name.
+TARGETS = ("mitsuba", "materialx", "usd")
+#: Texels per side of baked images by default (the cup's finest fbm octave: ~5 texels a cell).
+BAKE_SIZE = 1024
+
+
+def check_output(out: Path, force: bool) -> None:
+    """Refuse an output that is a file, or an existing non-empty folder without `force`."""
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: is a file; give --out a folder (new or empty)")
+    if out.is_dir() and any(out.iterdir()) and not force:
+        raise ConfigError(f"{out}: exists and is not empty; pass --force to replace it")
+
+
+@contextlib.contextmanager
+def output_folder(out: Path, force: bool) -> Iterator[Path]:
+    """A temporary folder to write into that becomes `out` on success (the previous `out`
+    removed only then); on any error nothing is left behind and `out` is as it was."""
+    check_output(out, force)
+    backup = None
+    if out.is_dir():
+        if any(out.iterdir()):
+            backup = Path(tempfile.mkdtemp(prefix=f".{out.name}-", suffix=".old", dir=out.parent))
+            os.replace(out, backup / out.name)
+        else:
+            out.rmdir()
+    try:
+        with atomic_path(out, folder=True) as tmp:
+            yield tmp
+    except BaseException:
+        if backup is not None:
+            os.replace(backup / out.name, out)
+            backup.rmdir()
+        raise
+    if backup is not None:
+        shutil.rmtree(backup)
+
+
+def export(
+    preset: Preset | Path,
+    to: str,
+    out: Path,
+    portable: bool = False,
+    force: bool = False,
+    size: int = BAKE_SIZE,
+    progress: Progress | None = None,
+) -> Path:
+    """Export a preset (or its file) to `to` in the folder `out`; the main file's path.
+
+    `portable` (Mitsuba only): built-in plugins only. `size`: texels per side of baked images.
+    `progress(done, total)`: after each baked image. The folder appears whole or not at all.
+    """
+    from . import materialx, mitsuba, usd
+
+    if to not in TARGETS:
+        raise ConfigError(f"--to {to!r}: choose one of {', '.join(TARGETS)}")
+    if portable and to != "mitsuba":
+        raise ConfigError(f"--portable: applies to --to mitsuba only (got --to {to})")
+    if size < 1:
+        raise ConfigError(f"--size {size}: must be a positive number of texels")
+    check_output(out, force)
+    if not isinstance(preset, Preset):
+        preset = load_preset(preset)
+    material = preset.material
+    with output_folder(out, force) as folder:
+        if to == "mitsuba" and not portable:
+            path = mitsuba.export_native(material, folder)
+        elif to == "mitsuba":
+            path = mitsuba.export_portable(material, folder, size, progress)
+        elif to == "materialx":
+            path = materialx.export(material, folder, size, progress)
+        else:
+            path = usd.export(material, folder, size, progress)
+        name = path.name
+    return out / name
+
+
+__all__ = ["BAKE_SIZE", "TARGETS", "check_output", "export", "output_folder"]

@@ -1,0 +1,336 @@
+"""`layerfit export`: Mitsuba XML (native, portable), MaterialX and USD read back with each
+target's own library; the fitted lobe maps; bad input leaves nothing behind."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tomllib
+import xml.etree.ElementTree as ET
+from dataclasses import replace
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from captures.images import read_image
+from fit.cli import app
+from fit.config import load_render_config
+from fit.export import export
+from fit.export.bake import plan
+from fit.export.mapping import (
+    EON_TABLE,
+    GGX_TABLE,
+    eon_roughness,
+    fit_eon,
+    fit_ggx,
+    ggx_roughness,
+    lambert_scale,
+)
+from fit.export.mitsuba import image_difference
+from fit.material import build_material, load_preset, save_preset
+from fit.render import bake_texture, render, scene_dict
+
+ROOT = Path(__file__).resolve().parents[2]
+CUP = ROOT / "configs" / "cup.toml"
+SPHERE = ROOT / "configs" / "glazed-sphere.toml"
+BUILTIN = {"bumpmap", "blendbsdf", "principled", "diffuse", "bitmap", "rgb"}
+
+
+def cup_preset(folder: Path) -> Path:
+    table = tomllib.loads(CUP.read_text())["material"]
+    return save_preset(build_material(table, CUP), folder / "cup.toml")
+
+
+def sphere_preset(folder: Path) -> Path:
+    return save_preset(load_render_config(SPHERE).material, folder / "glaze.toml")
+
+
+def tiny_scene(config: Path, size: int = 32):
+    """A config's scene with its first camera at size x size."""
+    scene = load_render_config(config).scene
+    return replace(scene, cameras=[replace(scene.cameras[0], width=size, height=size)])
+
+
+def leftovers(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
+
+
+# Mitsuba ------------------------------------------------------------------------------------------
+
+
+def test_mitsuba_native_renders_as_the_native_material(tmp_path):
+    """The XML loads once the plugins are registered and renders the same image as the preset
+    (same seed: identical; the scene is the glazed sphere at 32x32, 16 spp)."""
+    preset = load_preset(sphere_preset(tmp_path))
+    path = export(preset, "mitsuba", tmp_path / "xml")
+    assert path == tmp_path / "xml" / "material.xml"
+    loaded = mi.load_file(str(path))
+    scene = tiny_scene(SPHERE)
+    native = render(mi.load_dict(scene_dict(scene, preset.material, 0, 16)), 16, seed=3)
+    again = render(mi.load_dict(scene_dict(scene, loaded, 0, 16)), 16, seed=3)
+    assert native.mean() > 0.05
+    np.testing.assert_array_equal(again, native)
+
+
+def test_mitsuba_native_cup_keeps_every_parameter_and_texture(tmp_path):
+    """The cup's four-layer stack round-trips: every traversed value equal, textures copied
+    beside the XML under relative names."""
+    preset = load_preset(cup_preset(tmp_path))
+    path = export(preset, "mitsuba", tmp_path / "xml")
+    text = path.read_text()
+    assert 'type="layered"' in text and str(tmp_path) not in text  # relative file names
+    assert (path.parent / "glaze.mask.texture.exr").read_bytes() == (
+        tmp_path / "cup.glaze.mask.texture.exr"
+    ).read_bytes()
+    native = mi.traverse(mi.load_dict(preset.material.bsdf))
+    loaded = mi.traverse(mi.load_file(str(path)))
+    assert sorted(native.keys()) == sorted(loaded.keys())
+    for key in native.keys():
+        if key.endswith("to_uv"):  # a bitmap's UV transform (identity in both)
+            continue
+        np.testing.assert_allclose(np.ravel(loaded[key]), np.ravel(native[key]), err_msg=key)
+
+
+def test_mitsuba_portable_uses_builtins_only_and_looks_alike(tmp_path):
+    """--portable: only built-in plugins in the XML; on the glazed sphere its render is within
+    the measured difference of the native one (README, "Export")."""
+    preset = load_preset(sphere_preset(tmp_path))
+    path = export(preset, "mitsuba", tmp_path / "p", portable=True, size=16)
+    types = {e.get("type") for e in ET.parse(path).iter() if e.get("type")}
+    assert types <= BUILTIN, types
+    scene = tiny_scene(SPHERE)
+    native = render(mi.load_dict(scene_dict(scene, preset.material, 0, 64)), 64, seed=1)
+    portable = render(mi.load_dict(scene_dict(scene, mi.load_file(str(path)), 0, 64)), 64, seed=1)
+    assert image_difference(native, portable) < 0.35
+    assert abs(portable.mean() / native.mean() - 1) < 0.1
+
+
+def test_mitsuba_portable_cup_bakes_masks_and_stacks_blends(tmp_path):
+    path = export(cup_preset(tmp_path), "mitsuba", tmp_path / "p", portable=True, size=32)
+    root = ET.parse(path).getroot()
+    assert root.get("type") == "bumpmap"
+    types = [e.get("type") for e in root.iter() if e.get("type")]
+    assert set(types) <= BUILTIN and types.count("blendbsdf") == 3
+    assert types.count("principled") == 1 and types.count("diffuse") == 3
+    material = load_preset(tmp_path / "cup.toml").material
+    mask = read_image(path.parent / "lime.mask.exr")[..., 0]
+    np.testing.assert_allclose(mask, bake_texture(material.bsdf["lime_mask"], 32, 32), atol=1e-6)
+    assert mi.load_file(str(path)) is not None
+    # the glaze's pigment noise baked: its mean colour is the pigment (the noise has mean ~1)
+    colour = read_image(path.parent / "glaze.colour.exr")
+    assert np.allclose(colour.mean((0, 1)), [0.06, 0.20, 0.42], rtol=0.1)
+    assert (colour.std((0, 1)) / colour.mean((0, 1))).min() > 0.02  # it varies
+
+
+def test_mitsuba_portable_loads_in_plain_mitsuba(tmp_path):
+    """In a fresh process without layerfit's plugins (another variant, too)."""
+    path = export(cup_preset(tmp_path), "mitsuba", tmp_path / "p", portable=True, size=8)
+    code = (
+        "import sys, mitsuba as mi; mi.set_variant('scalar_rgb'); "
+        "print(type(mi.load_file(sys.argv[1])).__name__)"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code, str(path)], capture_output=True, text=True, check=False
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "BSDF"
+
+
+@pytest.mark.slow
+def test_mitsuba_cup_renders_alike(tmp_path):
+    """The cup at 32x32: the native export renders identically; the portable one's difference
+    (one seed, 16 spp) stays below the native render's own noise between seeds."""
+    preset = load_preset(cup_preset(tmp_path))
+    scene = tiny_scene(CUP)
+    images = {}
+    for name, portable in (("native", False), ("portable", True)):
+        path = export(preset, "mitsuba", tmp_path / name, portable=portable, size=256)
+        images[name] = render(mi.load_dict(scene_dict(scene, mi.load_file(str(path)))), 16, 0)
+    truth = render(mi.load_dict(scene_dict(scene, preset.material)), 16, 0)
+    other = render(mi.load_dict(scene_dict(scene, preset.material)), 16, 1)
+    np.testing.assert_array_equal(images["native"], truth)
+    assert image_difference(truth, images["portable"]) < image_difference(truth, other)
+
+
+# MaterialX ----------------------------------------------------------------------------------------
+
+
+def test_materialx_cup_validates_with_every_definition(tmp_path):
+    import MaterialX as mx
+
+    from fit.export.materialx import standard_libraries
+
+    path = export(cup_preset(tmp_path), "materialx", tmp_path / "mtlx", size=32)
+    doc = mx.createDocument()
+    mx.readFromXmlFile(doc, str(path))
+    doc.setDataLibrary(standard_libraries())
+    valid, message = doc.validate()
+    assert valid, message
+    nodes = doc.getNodes()
+    assert all(node.getNodeDef() is not None for node in nodes)
+    kinds = [node.getCategory() for node in nodes]
+    assert kinds.count("open_pbr_surface") == 4 and kinds.count("mix") == 3
+    glaze = doc.getNode("glaze")
+    assert glaze.getInputValue("specular_roughness") == pytest.approx(ggx_roughness(0.05), 1e-5)
+    assert glaze.getInputValue("specular_ior") == pytest.approx(1.5)
+    lime = doc.getNode("lime")
+    r, k = eon_roughness(0.9)
+    assert lime.getInputValue("base_diffuse_roughness") == pytest.approx(r, 1e-5)
+    assert np.allclose(
+        list(lime.getInputValue("base_color")), np.multiply([0.86, 0.85, 0.8], k), 1e-5
+    )
+    # the top mix is the stain over the rest, its mask the baked image beside the document
+    (material,) = doc.getMaterialNodes()
+    top = material.getInput("surfaceshader").getConnectedNode()
+    assert top.getInput("fg").getConnectedNode().getName() == "stain"
+    mask = top.getInput("mix").getConnectedNode().getInputValue("file")
+    assert (path.parent / mask).is_file()
+
+
+def test_materialx_single_glaze(tmp_path):
+    import MaterialX as mx
+
+    path = export(sphere_preset(tmp_path), "materialx", tmp_path / "mtlx")
+    doc = mx.createDocument()
+    mx.readFromXmlFile(doc, str(path))
+    (surface,) = [n for n in doc.getNodes() if n.getCategory() == "open_pbr_surface"]
+    assert surface.getInputValue("specular_roughness") == pytest.approx(ggx_roughness(0.0625), 1e-5)
+    assert sorted(p.name for p in path.parent.iterdir()) == ["material.mtlx"]
+
+
+# USD ----------------------------------------------------------------------------------------------
+
+
+def test_usd_cup_reads_back_with_its_maps(tmp_path):
+    from pxr import Usd, UsdShade
+
+    path = export(cup_preset(tmp_path), "usd", tmp_path / "usd", size=32)
+    stage = Usd.Stage.Open(str(path))
+    assert "one ior for base and clearcoat" in stage.GetMetadata("comment")
+    shader = UsdShade.Shader(stage.GetPrimAtPath("/Material/PreviewSurface"))
+    assert shader.GetIdAttr().Get() == "UsdPreviewSurface"
+    assert shader.GetInput("roughness").Get() == pytest.approx(ggx_roughness(0.05), 1e-6)
+    assert shader.GetInput("ior").Get() == pytest.approx(1.5)
+    source = shader.GetInput("diffuseColor").GetConnectedSources()[0][0].source
+    texture = UsdShade.Shader(source.GetPrim())
+    assert texture.GetIdAttr().Get() == "UsdUVTexture"
+    st = texture.GetInput("st").GetConnectedSources()[0][0].source
+    assert UsdShade.Shader(st.GetPrim()).GetIdAttr().Get() == "UsdPrimvarReader_float2"
+    diffuse = read_image(path.parent / texture.GetInput("file").Get().path)
+    # the baked diffuse colour is the share-weighted sum of the layers' colours
+    baked = plan(load_preset(tmp_path / "cup.toml").material, 32)
+    expected = sum(
+        w[..., None] * baked.colour_image(layer) * lambert_scale(layer.sigma)
+        for w, layer in zip(baked.shares(), baked.layers, strict=True)
+    )
+    np.testing.assert_allclose(diffuse, expected, atol=1e-5)
+    material = UsdShade.Material(stage.GetPrimAtPath("/Material"))
+    assert material.ComputeSurfaceSource()[0].GetPath() == shader.GetPath()
+
+
+def test_usd_single_glaze_is_constants(tmp_path):
+    from pxr import Usd, UsdShade
+
+    path = export(sphere_preset(tmp_path), "usd", tmp_path / "usd")
+    stage = Usd.Stage.Open(str(path))  # held: its prims are valid while it lives
+    shader = UsdShade.Shader(stage.GetPrimAtPath("/Material/PreviewSurface"))
+    pigment = np.multiply([0.1, 0.22, 0.55], lambert_scale(0.0))
+    assert np.allclose(list(shader.GetInput("diffuseColor").Get()), pigment)
+    f0 = ((1.52 - 1) / (1.52 + 1)) ** 2
+    assert np.allclose(list(shader.GetInput("specularColor").Get()), [f0] * 3)
+
+
+def test_usd_textured_oren_nayar_bakes_its_texture(tmp_path):
+    """A texture-valued colour is baked texel for texel (scaled by the Lambert factor)."""
+    from captures.images import write_image
+
+    texels = np.random.default_rng(1).uniform(0.1, 0.9, (8, 8, 3)).astype(np.float32)
+    write_image(tmp_path / "albedo.exr", texels)
+    table = {"type": "oren_nayar", "reflectance": "albedo.exr", "sigma": 0.3}
+    preset = save_preset(build_material(table, tmp_path / "m.toml"), tmp_path / "m.toml")
+    path = export(preset, "usd", tmp_path / "usd", size=8)
+    baked = read_image(path.parent / "diffuseColor.exr")
+    np.testing.assert_allclose(baked, texels * lambert_scale(0.3), rtol=1e-5)
+
+
+# Mappings -----------------------------------------------------------------------------------------
+
+
+def test_shipped_tables_are_the_fits():
+    """The tables in `mapping` are what the fits give (refitted at two points each), and the
+    interpolated maps stay close to a fit between table points."""
+    for alpha, r, residual in (GGX_TABLE[2], GGX_TABLE[6]):
+        assert fit_ggx(alpha) == pytest.approx((r, residual), abs=2e-4)
+    for sigma, r, k, residual in (EON_TABLE[3], EON_TABLE[9]):
+        assert fit_eon(sigma) == pytest.approx((r, k, residual), abs=2e-4)
+    assert ggx_roughness(0.05) == pytest.approx(fit_ggx(0.05)[0], abs=0.01)
+    assert eon_roughness(0.45)[0] == pytest.approx(fit_eon(0.45)[0], abs=0.01)
+    assert ggx_roughness(0.01) ** 2 == pytest.approx(0.01, rel=0.1)  # sharp lobes: alpha ~ r^2
+
+
+def test_sigma_zero_maps_to_lambert_exactly():
+    assert eon_roughness(0.0) == (0.0, 1.0) and lambert_scale(0.0) == 1.0
+
+
+# The command --------------------------------------------------------------------------------------
+
+
+def cli(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def test_cli_exports_and_refuses_to_overwrite(tmp_path):
+    preset = sphere_preset(tmp_path)
+    out = tmp_path / "x"
+    first = cli("export", preset, "--to", "usd", "--out", out)
+    assert first.exit_code == 0, first.output
+    assert (out / "material.usda").is_file()
+    again = cli("export", preset, "--to", "usd", "--out", out)
+    assert again.exit_code == 2 and "exists and is not empty; pass --force" in again.output
+    forced = cli("export", preset, "--to", "materialx", "--out", out, "--force")
+    assert forced.exit_code == 0, forced.output
+    assert sorted(p.name for p in out.iterdir()) == ["material.mtlx"]
+    assert leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize("case", ["schema", "texture", "file", "target"])
+def test_cli_bad_input_is_one_line_and_writes_nothing(tmp_path, case):
+    preset = cup_preset(tmp_path)
+    out, args = tmp_path / "out", ["--to", "mitsuba"]
+    if case == "schema":
+        preset.write_text(preset.read_text().replace("schema = 1", "schema = 7"))
+        message = "schema = 7 was written by a newer layerfit"
+    elif case == "texture":
+        (tmp_path / "cup.lime.mask.texture.exr").unlink()
+        message = "material.lime.mask.texture"
+    elif case == "file":
+        out.write_text("not a folder")
+        message = "is a file; give --out a folder"
+    else:
+        args, message = ["--to", "blender"], "choose one of mitsuba, materialx, usd"
+    before = sorted(p.name for p in tmp_path.iterdir())
+    result = cli("export", preset, *args, "--out", out)
+    assert result.exit_code == 2
+    (line,) = [x for x in result.output.splitlines() if x.strip()]
+    assert message in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_an_interrupted_export_leaves_nothing(tmp_path):
+    """A failure while baking (here Ctrl-C) removes the partial folder and keeps the old one."""
+    preset = cup_preset(tmp_path)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("old export")
+
+    def interrupt(done, total):
+        if done == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        export(preset, "materialx", out, force=True, size=16, progress=interrupt)
+    assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
+    assert leftovers(tmp_path) == []
