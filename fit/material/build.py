@@ -154,6 +154,11 @@ class _Builder:
         path = (self.file.parent / value).resolve()
         if not path.is_file():
             raise self.error(where, f"{value!r} is not a file (paths are relative to the config)")
+        from captures.images import image_problem
+
+        problem = image_problem(path)
+        if problem is not None:
+            raise self.error(where, problem)
         return {"type": "bitmap", "filename": str(path), "raw": raw}, path
 
     def param(self, spec: ParamSpec, value, where: str, design: str, traverse: str):
