@@ -128,6 +128,12 @@ def _in_folder(path: Path, info: ValidationInfo) -> Path:
     return path
 
 
+def _not_tiny(gain: float) -> float:
+    if gain < 2.0**-MAX_EV:
+        raise ValueError(f"got {gain}; should be at least 2^-{MAX_EV:g} (a plausible exposure)")
+    return gain
+
+
 FileInFolder = Annotated[ExistingPath, AfterValidator(_in_folder)]
 WhiteBalance = by_shape(text=Literal["camera", "none"], array=PositiveVec3)
 TruthValue = by_shape(number=FiniteFloat, array=list[FiniteFloat])
@@ -157,7 +163,7 @@ class ViewSpec(StrictModel):
     """An optional object mask of the image's size."""
     exposure_ev: Annotated[FiniteFloat, Field(ge=-MAX_EV, le=MAX_EV)] | None = None
     """The image is divided by 2^exposure_ev (or give gain)."""
-    gain: Annotated[PositiveFloat, Field(ge=2.0**-MAX_EV, le=2.0**MAX_EV)] | None = None
+    gain: Annotated[PositiveFloat, Field(le=2.0**MAX_EV), AfterValidator(_not_tiny)] | None = None
     """The image is divided by this relative exposure (or give exposure_ev)."""
     camera: dict[str, Any]
     """A camera table as in [[scene.cameras]]; width and height default to the image's."""
