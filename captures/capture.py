@@ -227,7 +227,7 @@ def load_capture(path: str | Path) -> Capture:
         if (camera["width"], camera["height"]) != (w, h):
             raise CaptureError(
                 f"{path}: views[{i}].camera is {camera['width']}x{camera['height']} but "
-                f"{spec.image.name} is {w}x{h}"
+                f"{spec.image.name} is {w}x{h}; make them match (or drop width and height)"
             )
         cameras.append(camera)
         views.append(View(spec.image.stem, image, weight, None, gain, mask=mask))  # camera below
@@ -253,7 +253,7 @@ def load_capture(path: str | Path) -> Capture:
         if not sees(camera, center, radius):
             raise CaptureError(
                 f"{path}: views[{i}].camera does not see the object (centre {center.round(3)}, "
-                f"radius {radius:.3g}): check its origin, target and field of view"
+                f"radius {radius:.3g}); check its origin, target and field of view"
             )
     for message in warnings:
         log.warning(message)

@@ -33,13 +33,15 @@ def read_image(path: str | Path) -> np.ndarray:
     """Pixels as float32 (H, W, C) exactly as stored (no colour decoding)."""
     path = Path(path)
     if not path.exists():
-        raise CaptureError(f"{path}: no such image file")
+        raise CaptureError(f"{path}: no such image file; check the path")
+    if path.is_dir():
+        raise CaptureError(f"{path}: is a folder, not an image; give an image file")
     buf = oiio.ImageBuf(str(path))
     if buf.has_error:
-        raise CaptureError(f"{path}: cannot read image ({buf.geterror()})")
+        raise CaptureError(f"{path}: cannot read image ({buf.geterror()}); convert it")
     pixels = buf.get_pixels(oiio.FLOAT)
     if pixels is None or buf.has_error:
-        raise CaptureError(f"{path}: cannot decode image ({buf.geterror()})")
+        raise CaptureError(f"{path}: cannot decode image ({buf.geterror()}); convert it")
     return np.asarray(pixels, dtype=np.float32)
 
 
@@ -88,11 +90,16 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
 
         raw = read_raw(path)
         return develop(raw), raw.saturated, []
+    if path.is_dir():
+        raise CaptureError(f"{path}: is a folder, not an image; give an image file")
     buf = oiio.ImageInput.open(str(path)) if path.exists() else None
     if buf is None:
         if not path.exists():
-            raise CaptureError(f"{path}: no such image file")
-        raise CaptureError(f"{path}: not an image OpenImageIO can read ({oiio.geterror()})")
+            raise CaptureError(f"{path}: no such image file; check the path")
+        raise CaptureError(
+            f"{path}: not an image OpenImageIO can read ({oiio.geterror().strip()}); convert it "
+            "to EXR, PNG or TIFF"
+        )
     spec = buf.spec()
     buf.close()
     pixels = read_image(path)
@@ -155,6 +162,7 @@ def image_problem(path: str | Path) -> str | None:
     reader = oiio.ImageInput.open(str(path))
     if reader is None:
         return f"'{path.name}' is not a readable image ({oiio.geterror().strip()}); convert it"
+    oiio.geterror()  # nothing pending
     spec = reader.spec()
     reader.close()
     if spec.width < 1 or spec.height < 1 or spec.nchannels < 1:

@@ -36,7 +36,10 @@ def open_capture(path: str | Path, downscale: int = 1) -> Capture:
                 "check it against the peer format"
             ) from None
     elif path.is_dir() and not (path / "capture.toml").exists():
-        raise CaptureError(f"{path}: no capture.toml, scene.json or DiLiGenT files in the folder")
+        raise CaptureError(
+            f"{path}: no capture.toml, scene.json or DiLiGenT files in the folder; give a "
+            "capture folder"
+        )
     else:
         capture = load_capture(path)
     if downscale < 1:

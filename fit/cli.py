@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import math
 import os
@@ -93,7 +94,7 @@ def _scene_and_material(config: Path, scene: Path | None):
             return cfg.scene, material, spp
     table = read_toml(scene)
     if "scene" not in table:
-        raise CaptureError(f"{scene}: no [scene] table")
+        raise CaptureError(f"{scene}: no [scene] table; give a TOML file with one")
     return parse_scene(table["scene"], scene), material, spp
 
 
@@ -293,7 +294,7 @@ def synth(
     try:
         the_scene, material, config_spp = _scene_and_material(config, scene)
         if fmt not in ("exr", "png", "jpg"):
-            raise InputError(f"--format {fmt!r}: choose one of exr, png, jpg")
+            raise InputError(f"--format {fmt!r}: unknown format; choose one of exr, png, jpg")
         inputs = _inputs(config, scene, the_scene, material)
         check_output(out, "--out", force=force, inputs=inputs, folder=True)
         if out.is_dir() and any(out.iterdir()) and not (out / "capture.toml").is_file():
@@ -353,14 +354,15 @@ def inspect(
     name = capture.stem if capture.name != "scene.json" else capture.parent.name
     sheet = sheet or Path("out") / f"inspect-{name}.png"
     try:
-        folder = capture if capture.is_dir() else capture.parent
+        cap = open_capture(capture, downscale)
+        folder = Path(cap.path or capture)
+        folder = folder if folder.is_dir() else folder.parent
         if sheet.resolve().is_relative_to(folder.resolve()):
             raise InputError(
                 f"--sheet {sheet}: is inside the capture folder {folder}; write the sheet "
                 "elsewhere (a capture's files are never overwritten)"
             )
         check_output(sheet, "--sheet", force=force, inputs=[capture], suffixes=(".png",))
-        cap = open_capture(capture, downscale)
     except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)
@@ -520,10 +522,27 @@ def main(argv: list[str] | None = None) -> None:
     bad input or usage, 130 when interrupted, 1 otherwise); `LAYERFIT_DEBUG=1` shows
     tracebacks of unexpected errors."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    previous = None
     with contextlib.suppress(ValueError):  # only the main thread may set handlers
-        signal.signal(signal.SIGTERM, _terminate)
+        previous = signal.signal(signal.SIGTERM, _terminate)
     try:
-        code = app(args=argv, prog_name="layerfit", standalone_mode=False)
+        code = _run(argv)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    sys.exit(code)
+
+
+@functools.cache
+def _command():
+    """The app's click command, built once (typer rebuilds it on every call otherwise)."""
+    return typer.main.get_command(app)
+
+
+def _run(argv: list[str] | None) -> int:
+    """Run the app; the exit status, every failure printed as one line."""
+    try:
+        code = _command().main(args=argv, prog_name="layerfit", standalone_mode=False)
     except typer.TyperException as err:  # usage: an unknown option, a value out of range
         if type(err).__name__ == "NoArgsIsHelpError":  # `layerfit` alone: the help
             err.show()
@@ -551,4 +570,4 @@ def main(argv: list[str] | None = None) -> None:
             "command (LAYERFIT_DEBUG=1 shows the traceback)",
         )
         code = 1
-    sys.exit(code if isinstance(code, int) else 0)
+    return code if isinstance(code, int) else 0

@@ -53,7 +53,10 @@ def held_out(n_views: int, n: int) -> list[int]:
     if n == 0:
         return []
     if not 0 < n < n_views:
-        raise InputError(f"holdout = {n}: keep at least one of the {n_views} views in the fit")
+        raise InputError(
+            f"holdout = {n}: {'negative' if n < 0 else f'leaves none of the {n_views} views'}; "
+            "keep at least one view in the fit (and hold out fewer)"
+        )
     picks = sorted({min(n_views - 1, max(1, round((j + 1) * n_views / (n + 1)))) for j in range(n)})
     rest = [i for i in range(n_views - 1, 0, -1) if i not in picks]
     return sorted(picks + rest[: n - len(picks)])
@@ -69,7 +72,7 @@ def check_output(out: Path, cfg: FitConfig, resume: bool, force: bool) -> None:
         raise InputError(f"--out {out}: holds the fit's inputs; choose another folder")
     if resume:
         if not (out / "checkpoint.npz").exists():
-            raise InputError(f"--resume: no checkpoint in {out} (nothing to resume)")
+            raise InputError(f"--resume: no checkpoint in {out}; run without --resume")
     elif out.exists() and any(out.iterdir()) and not force:
         raise InputError(
             f"--out {out}: exists and is not empty; choose another folder, --resume a killed "
@@ -80,7 +83,9 @@ def check_output(out: Path, cfg: FitConfig, resume: bool, force: bool) -> None:
         write_text(out / ".write-test", "")
         (out / ".write-test").unlink()
     except OSError as err:
-        raise InputError(f"--out {out}: cannot write there ({err.strerror})") from None
+        raise InputError(
+            f"--out {out}: cannot write there ({err.strerror}); choose another folder"
+        ) from None
 
 
 def check_truth(capture: Capture, free: list[Free], path) -> None:
@@ -110,7 +115,12 @@ def prepare(cfg: FitConfig, holdout: int | None = None) -> Prepared:
     `[truth]` sizes, each phase's downscale): any problem is a one-line `InputError` before
     any render."""
     capture = open_capture(cfg.capture, cfg.downscale)
-    held = held_out(len(capture.views), cfg.holdout if holdout is None else holdout)
+    try:
+        held = held_out(len(capture.views), cfg.holdout if holdout is None else holdout)
+    except InputError as err:
+        raise InputError(
+            f"{'--holdout' if holdout is not None else f'{cfg.path}: fit.holdout'}: {err}"
+        ) from None
     fitted = dataclasses.replace(
         capture, views=[v for i, v in enumerate(capture.views) if i not in held]
     )

@@ -153,7 +153,9 @@ class _Builder:
             raise self.error(where, "must be a texture file name")
         path = (self.file.parent / value).resolve()
         if not path.is_file():
-            raise self.error(where, f"{value!r} is not a file (paths are relative to the config)")
+            raise self.error(
+                where, f"{value!r} is not a file (paths are relative to the config); check the path"
+            )
         from captures.images import image_problem
 
         problem = image_problem(path)
