@@ -257,7 +257,7 @@ def build_material(
     enabled = _enabled(b, table, where)
     kind = table.pop("type", None)
     choices = [*LAYER_PLUGINS, "layered"]
-    if kind not in choices:
+    if not isinstance(kind, str) or kind not in choices:
         raise b.error(f"{where}.type", f"got {kind!r}; choose one of {', '.join(choices)}")
     if not enabled:
         return None
@@ -286,7 +286,7 @@ def build_material(
         if not _enabled(b, layer, f"{where}.{name}"):
             continue
         layer_kind = layer.pop("type", None)
-        if layer_kind not in LAYER_PLUGINS:
+        if not isinstance(layer_kind, str) or layer_kind not in LAYER_PLUGINS:
             choices = ", ".join(LAYER_PLUGINS)
             raise b.error(f"{where}.{name}.type", f"got {layer_kind!r}; choose one of {choices}")
         bsdf = b.plugin(LAYER_PLUGINS[layer_kind], layer, f"{where}.{name}", name, f"{name}.")
