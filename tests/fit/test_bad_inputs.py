@@ -893,6 +893,25 @@ def test_synth_force_replaces_a_capture_and_inspect_odd_downscale(base, tmp_path
     assert code == 0, stderr
 
 
+def test_a_disabled_layer_keeps_the_other_layers_keys(tmp_path):
+    """Disabling one of two layers leaves `clay.sigma` (not `oren_nayar.sigma`), and a free key
+    of the disabled layer names that layer."""
+    from fit.material import build_material, resolve
+
+    table = {
+        "type": "layered",
+        "layers": [
+            {"name": "clay", "type": "oren_nayar", "sigma": 0.2},
+            {"name": "glaze", "type": "glaze", "enabled": False, "mask": {"threshold": 0.3}},
+        ],
+    }
+    material = build_material(table, tmp_path / "m.toml")
+    assert "clay.sigma" in material.params and "oren_nayar.sigma" not in material.params
+    assert [f.key for f in resolve(material, ["clay.sigma"])] == ["clay.sigma"]
+    with pytest.raises(KeyError, match="no layer 'glaze' is built"):
+        resolve(material, ["glaze.roughness"])
+
+
 def test_manifest_downscale_is_applied(base):
     """fit.downscale (through open_capture) and [capture] downscale both reach a manifest."""
     from captures import open_capture
@@ -904,10 +923,18 @@ def test_manifest_downscale_is_applied(base):
 # Ctrl-C -------------------------------------------------------------------------------------------
 
 
-def test_ctrl_c_in_synth_is_one_line_and_leaves_nothing(base, tmp_path, capsys, monkeypatch):
+@pytest.mark.parametrize("how", ["ctrl-c", "sigterm"])
+def test_ctrl_c_in_synth_is_one_line_and_leaves_nothing(base, tmp_path, capsys, monkeypatch, how):
+    """Ctrl-C, or SIGTERM (a kill), while the views render: nothing is left behind."""
+    import os
+    import signal
+
     import fit.commands.synth as synth
 
     def interrupted(*args, **kwargs):
+        if how == "sigterm":
+            os.kill(os.getpid(), signal.SIGTERM)  # the CLI's handler raises KeyboardInterrupt
+            raise AssertionError("SIGTERM did not stop the render")
         raise KeyboardInterrupt
 
     monkeypatch.setattr(synth, "render", interrupted)
