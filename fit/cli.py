@@ -154,7 +154,7 @@ def render(
             files = dict.fromkeys((stem.with_suffix(".exr"), stem.with_suffix(out.suffix)))
             paths.append(list(files))
         inputs = _inputs(config, scene, the_scene, material)
-        for path in [out, *(p for files in paths for p in files)]:
+        for path in (p for files in paths for p in files):
             check_output(path, "--out", force=force, inputs=inputs, suffixes=IMAGE_SUFFIXES)
     except InputError as err:
         raise _fail(err, 2) from None

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -820,6 +821,30 @@ def test_bad_input_is_one_line_and_changes_nothing(base, tmp_path, capsys, make,
     for text in expected:
         assert text in lines[0], (text, lines[0])
     assert snapshot(work) == before  # inputs byte-identical, no partial or new file
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may write in a read-only folder")
+@pytest.mark.parametrize(
+    "make",
+    [
+        render_args("--out", out("ro/o.png")),
+        synth_args("--out", out("ro/c")),
+        inspect_args(out("cap"), "--no-silhouette", "--sheet", out("ro/s.png")),
+        fit_args("--out", out("ro/run")),
+    ],
+    ids=["render", "synth", "inspect", "fit"],
+)
+def test_read_only_output_folder(base, tmp_path, capsys, make):
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    (work / "ro").mkdir()
+    (work / "ro").chmod(0o555)
+    try:
+        code, _, stderr = run(make(work), capsys)
+    finally:
+        (work / "ro").chmod(0o755)
+    assert code == 2 and len(stderr.strip().splitlines()) == 1 and "ro" in stderr, stderr
+    assert not any((work / "ro").iterdir())
 
 
 def test_corpus_is_large_and_ids_unique():
