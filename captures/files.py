@@ -9,6 +9,8 @@ import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+from .errors import InputError
+
 
 def _umask() -> int:
     umask = os.umask(0)
@@ -73,8 +75,6 @@ def check_output(
     file of another kind (a folder for a file, or a file for a folder), one of the command's
     `inputs` (or a folder holding one), an existing output without `force`, a suffix not in
     `suffixes`, or a folder where nothing can be created. Returns `path`."""
-    from .errors import InputError
-
     path = Path(path)
     resolved = path.resolve()
     if suffixes and path.suffix.lower() not in suffixes:
@@ -104,7 +104,9 @@ def check_output(
     if not parent.is_dir():
         raise InputError(f"{option} {path}: {parent} is a file, not a folder; choose another path")
     if not os.access(parent, os.W_OK | os.X_OK):
-        raise InputError(f"{option} {path}: cannot write in {parent} (permission denied)")
+        raise InputError(
+            f"{option} {path}: cannot write in {parent} (permission denied); choose another path"
+        )
     return path
 
 

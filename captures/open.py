@@ -13,6 +13,8 @@ def open_capture(path: str | Path, downscale: int = 1) -> Capture:
     """A capture manifest (file or folder), a peer `scene.json`, or a DiLiGenT folder, area-
     averaged by `downscale` (every kind: the cameras follow)."""
     path = Path(path)
+    if downscale < 1:
+        raise CaptureError(f"{path}: downscale = {downscale}; give an integer >= 1")
     if not path.exists():
         raise CaptureError(
             f"{path}: no such capture; give a capture.toml, its folder, a peer "
@@ -42,6 +44,4 @@ def open_capture(path: str | Path, downscale: int = 1) -> Capture:
         )
     else:
         capture = load_capture(path)
-    if downscale < 1:
-        raise CaptureError(f"{path}: downscale = {downscale}; give an integer >= 1")
     return capture.downscaled(downscale)
