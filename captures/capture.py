@@ -57,6 +57,9 @@ from .weights import downscale, downscaled_size, validity
 
 log = logging.getLogger(__name__)
 
+#: The largest exposure offset a view may declare, in EV (2^40: far beyond any camera).
+MAX_EV = 40.0
+
 
 @dataclass
 class View:
@@ -125,6 +128,12 @@ def _in_folder(path: Path, info: ValidationInfo) -> Path:
     return path
 
 
+def _not_tiny(gain: float) -> float:
+    if gain < 2.0**-MAX_EV:
+        raise ValueError(f"got {gain}; should be at least 2^-{MAX_EV:g} (a plausible exposure)")
+    return gain
+
+
 FileInFolder = Annotated[ExistingPath, AfterValidator(_in_folder)]
 WhiteBalance = by_shape(text=Literal["camera", "none"], array=PositiveVec3)
 TruthValue = by_shape(number=FiniteFloat, array=list[FiniteFloat])
@@ -152,9 +161,9 @@ class ViewSpec(StrictModel):
     """The photograph, relative to the manifest, inside its folder."""
     mask: FileInFolder | None = None
     """An optional object mask of the image's size."""
-    exposure_ev: FiniteFloat | None = None
+    exposure_ev: Annotated[FiniteFloat, Field(ge=-MAX_EV, le=MAX_EV)] | None = None
     """The image is divided by 2^exposure_ev (or give gain)."""
-    gain: PositiveFloat | None = None
+    gain: Annotated[PositiveFloat, Field(le=2.0**MAX_EV), AfterValidator(_not_tiny)] | None = None
     """The image is divided by this relative exposure (or give exposure_ev)."""
     camera: dict[str, Any]
     """A camera table as in [[scene.cameras]]; width and height default to the image's."""
@@ -218,14 +227,25 @@ def load_capture(path: str | Path) -> Capture:
         if (camera["width"], camera["height"]) != (w, h):
             raise CaptureError(
                 f"{path}: views[{i}].camera is {camera['width']}x{camera['height']} but "
-                f"{spec.image.name} is {w}x{h}"
+                f"{spec.image.name} is {w}x{h}; make them match (or drop width and height)"
             )
         cameras.append(camera)
         views.append(View(spec.image.stem, image, weight, None, gain, mask=mask))  # camera below
         if weight.mean() == 0:
-            raise CaptureError(f"{path}: views[{i}] ({spec.image.name}) has no valid pixel")
+            raise CaptureError(
+                f"{path}: views[{i}].image: {spec.image.name} has no valid pixel (every one is "
+                "saturated, black, not finite or outside the mask); check the image, its "
+                "exposure and its mask"
+            )
 
     scene = parse_scene({**manifest.scene, "cameras": cameras}, path)
+    folder = path.parent.resolve()
+    for key, file in _scene_files(scene):
+        if not file.resolve().is_relative_to(folder):
+            raise CaptureError(
+                f"{path}: scene.{key}: {file} points outside the capture folder {folder}; copy "
+                "the file into the folder"
+            )
     for view, camera in zip(views, scene.cameras, strict=True):
         view.camera = camera
     center, radius = bounding_sphere(scene.geometry)
@@ -233,13 +253,25 @@ def load_capture(path: str | Path) -> Capture:
         if not sees(camera, center, radius):
             raise CaptureError(
                 f"{path}: views[{i}].camera does not see the object (centre {center.round(3)}, "
-                f"radius {radius:.3g}): check its origin, target and field of view"
+                f"radius {radius:.3g}); check its origin, target and field of view"
             )
     for message in warnings:
         log.warning(message)
     return Capture(scene, views, dict(manifest.truth), path, warnings).downscaled(
         settings.downscale
     )
+
+
+def _scene_files(scene: Scene) -> list[tuple[str, Path]]:
+    """(key, path) of the files a scene reads: its mesh and its environment map."""
+    from .scene import EnvMap, ObjFile
+
+    files = []
+    if isinstance(scene.geometry, ObjFile):
+        files.append(("geometry", Path(scene.geometry.path)))
+    if isinstance(scene.environment, EnvMap):
+        files.append(("environment.file", Path(scene.environment.path)))
+    return files
 
 
 # Writing -----------------------------------------------------------------------------------------

@@ -6,8 +6,10 @@ import contextlib
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+
+from .errors import InputError
 
 
 def _umask() -> int:
@@ -17,17 +19,18 @@ def _umask() -> int:
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | Path, folder: bool = False) -> Iterator[Path]:
+def atomic_path(path: str | Path, folder: bool = False, replace: bool = False) -> Iterator[Path]:
     """Yield a hidden temporary path beside `path` to write into; on success it is renamed to
     `path` (replacing a file of the same kind), on any error (Ctrl-C included) it is removed.
 
     With `folder`, the temporary path is an empty folder (permissions as the umask allows), and
-    `path` must not exist yet (a folder is never merged or replaced).
+    `path` must not exist yet unless `replace` (a folder is never merged; with `replace` an
+    existing one is removed only once the new one is complete).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if folder:
-        if path.exists():
+        if path.exists() and not replace:
             raise FileExistsError(f"{path} exists; choose a new folder (nothing was overwritten)")
         tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}-", suffix=".partial", dir=path.parent))
         tmp.chmod(0o777 & ~_umask())  # mkdtemp's 0700 is for secrets
@@ -40,7 +43,10 @@ def atomic_path(path: str | Path, folder: bool = False) -> Iterator[Path]:
         tmp.chmod(0o666 & ~_umask())  # mkstemp's 0600 is for secrets
     try:
         yield tmp
-        os.replace(tmp, path)
+        if folder and path.exists():
+            replace_folder(path, tmp)
+        else:
+            os.replace(tmp, path)
     except BaseException:
         if tmp.is_dir():
             shutil.rmtree(tmp, ignore_errors=True)
@@ -54,3 +60,70 @@ def write_text(path: str | Path, text: str) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return Path(path)
+
+
+def check_output(
+    path: str | Path,
+    option: str,
+    *,
+    force: bool = False,
+    inputs: Iterable[str | Path] = (),
+    suffixes: tuple[str, ...] = (),
+    folder: bool = False,
+) -> Path:
+    """Refuse, before any work, an output that cannot be written or would lose something: a
+    file of another kind (a folder for a file, or a file for a folder), one of the command's
+    `inputs` (or a folder holding one), an existing output without `force`, a suffix not in
+    `suffixes`, or a folder where nothing can be created. Returns `path`."""
+    path = Path(path)
+    resolved = path.resolve()
+    if suffixes and path.suffix.lower() not in suffixes:
+        raise InputError(
+            f"{option} {path}: unsupported file type {path.suffix or '(none)'!r}; "
+            f"use {', '.join(suffixes)}"
+        )
+    for item in inputs:
+        source = Path(item).resolve()
+        if source == resolved or (folder and source.is_relative_to(resolved)):
+            raise InputError(
+                f"{option} {path}: is an input of this command ({source}); inputs are never "
+                "overwritten: choose another path"
+            )
+    if path.exists() or path.is_symlink():
+        if folder and not path.is_dir():
+            raise InputError(f"{option} {path}: is a file; give a folder")
+        if not folder and path.is_dir():
+            raise InputError(f"{option} {path}: is a folder; give a file name")
+        if not force:
+            raise InputError(
+                f"{option} {path}: exists; choose another path, or give --force to replace it"
+            )
+    parent = resolved.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(f"{option} {path}: {parent} is a file, not a folder; choose another path")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(
+            f"{option} {path}: cannot write in {parent} (permission denied); choose another path"
+        )
+    return path
+
+
+def replace_folder(path: str | Path, new: str | Path) -> None:
+    """Put the finished folder `new` at `path`, moving an existing `path` aside first and
+    deleting it only once `new` is in place."""
+    path, new = Path(path), Path(new)
+    old = None
+    if path.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{path.name}-", suffix=".old", dir=path.parent))
+        os.replace(path, old / path.name)
+    try:
+        os.replace(new, path)
+    except BaseException:
+        if old is not None:
+            os.replace(old / path.name, path)
+            old.rmdir()
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)

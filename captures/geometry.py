@@ -173,24 +173,55 @@ def cup_mesh(shape: CupShape | None = None) -> MeshData:
 
 
 def check_obj_has_uvs(path: str | Path) -> None:
-    """Raise `CaptureError` unless every face of the OBJ at `path` has texture coordinates."""
+    """Raise `CaptureError` unless the OBJ at `path` is a mesh the renderer can load: faces of 3
+    or more corners whose vertex, texture and normal indices exist, and texture coordinates on
+    every face."""
     path = Path(path)
     try:
         text = path.read_text(errors="replace")
     except FileNotFoundError:
         raise CaptureError(f"{path}: no such OBJ file") from None
-    has_vt, faces, faces_with_vt = False, 0, 0
-    for line in text.splitlines():
-        if line.startswith("vt "):
-            has_vt = True
-        elif line.startswith("f "):
+    except IsADirectoryError:
+        raise CaptureError(f"{path}: is a folder; give an OBJ file") from None
+    except OSError as err:
+        raise CaptureError(f"{path}: cannot read ({err.strerror})") from None
+    counts = {"v": 0, "vt": 0, "vn": 0}
+    faces, faces_with_vt = 0, 0
+    for number, line in enumerate(text.splitlines(), 1):
+        words = line.split()
+        if not words:
+            continue
+        if words[0] in counts:
+            counts[words[0]] += 1
+        elif words[0] == "f":
             faces += 1
-            corners = line.split()[1:]
-            if corners and all("/" in c and c.split("/")[1] != "" for c in corners):
+            corners = words[1:]
+            if len(corners) < 3:
+                raise CaptureError(
+                    f"{path}: line {number}: a face needs 3 or more corners; fix or remove it"
+                )
+            for corner in corners:
+                for kind, index in zip(("v", "vt", "vn"), corner.split("/"), strict=False):
+                    if index == "" and kind != "v":
+                        continue
+                    try:
+                        i = int(index)
+                    except ValueError:
+                        raise CaptureError(
+                            f"{path}: line {number}: face corner {corner!r} is not made of "
+                            "integer indices; fix the file (export it again)"
+                        ) from None
+                    # 1-based; negative counts back from the last one read so far
+                    if i == 0 or i > counts[kind] or -i > counts[kind]:
+                        raise CaptureError(
+                            f"{path}: line {number}: face index {i} ({kind}) is out of range "
+                            f"(1 to {counts[kind]} at that line); fix the file (export it again)"
+                        )
+            if all(len(c.split("/")) > 1 and c.split("/")[1] != "" for c in corners):
                 faces_with_vt += 1
     if faces == 0:
-        raise CaptureError(f"{path}: the OBJ has no faces")
-    if not has_vt or faces_with_vt < faces:
+        raise CaptureError(f"{path}: the OBJ has no faces; give a triangle mesh with UVs")
+    if counts["vt"] == 0 or faces_with_vt < faces:
         raise CaptureError(
             f"{path}: the OBJ has no texture coordinates on {faces - faces_with_vt} of {faces} "
             "faces; layer masks and textures need UVs: unwrap it (e.g. Blender: UV > Smart UV "

@@ -13,6 +13,8 @@ from .files import atomic_path
 
 log = logging.getLogger(__name__)
 ENCODINGS = ("linear", "srgb", "raw")
+#: The largest half float: float images clip there (a value this high is saturated).
+HALF_MAX = 65504.0
 
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
@@ -31,13 +33,15 @@ def read_image(path: str | Path) -> np.ndarray:
     """Pixels as float32 (H, W, C) exactly as stored (no colour decoding)."""
     path = Path(path)
     if not path.exists():
-        raise CaptureError(f"{path}: no such image file")
+        raise CaptureError(f"{path}: no such image file; check the path")
+    if path.is_dir():
+        raise CaptureError(f"{path}: is a folder, not an image; give an image file")
     buf = oiio.ImageBuf(str(path))
     if buf.has_error:
-        raise CaptureError(f"{path}: cannot read image ({buf.geterror()})")
+        raise CaptureError(f"{path}: cannot read image ({buf.geterror()}); convert it")
     pixels = buf.get_pixels(oiio.FLOAT)
     if pixels is None or buf.has_error:
-        raise CaptureError(f"{path}: cannot decode image ({buf.geterror()})")
+        raise CaptureError(f"{path}: cannot decode image ({buf.geterror()}); convert it")
     return np.asarray(pixels, dtype=np.float32)
 
 
@@ -76,7 +80,7 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
 
     `encoding` "linear" keeps values as stored (integers normalised to [0, 1]); "srgb" decodes
     them; "raw" develops camera RAW (see `captures.raw`, as-shot white balance). Integer files
-    mark pixels at the top code as saturated; float files never are.
+    mark pixels at the top code as saturated; float files those at `HALF_MAX` or above.
     """
     path = Path(path)
     if encoding not in ENCODINGS:
@@ -86,11 +90,16 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
 
         raw = read_raw(path)
         return develop(raw), raw.saturated, []
+    if path.is_dir():
+        raise CaptureError(f"{path}: is a folder, not an image; give an image file")
     buf = oiio.ImageInput.open(str(path)) if path.exists() else None
     if buf is None:
         if not path.exists():
-            raise CaptureError(f"{path}: no such image file")
-        raise CaptureError(f"{path}: not an image OpenImageIO can read ({oiio.geterror()})")
+            raise CaptureError(f"{path}: no such image file; check the path")
+        raise CaptureError(
+            f"{path}: not an image OpenImageIO can read ({oiio.geterror().strip()}); convert it "
+            "to EXR, PNG or TIFF"
+        )
     spec = buf.spec()
     buf.close()
     pixels = read_image(path)
@@ -101,7 +110,15 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
     elif pixels.shape[2] == 2 or pixels.shape[2] > 4:
         raise CaptureError(f"{path}: {pixels.shape[2]} channels; expected grey, RGB or RGBA")
     pixels = pixels[..., :3]
-    saturated = np.any(pixels >= 1.0, axis=-1) if integer else np.zeros(pixels.shape[:2], bool)
+    if integer:
+        saturated = np.any(pixels >= 1.0, axis=-1)
+    else:  # half floats clamp at HALF_MAX: a pixel there is clipped, not measured
+        saturated = np.any(pixels >= HALF_MAX, axis=-1)
+        if saturated.any():
+            warnings.append(
+                f"{path}: {int(saturated.sum())} pixels at the half-float maximum {HALF_MAX:g} "
+                "are treated as saturated"
+            )
     if encoding == "srgb":
         pixels = srgb_decode(pixels)
     elif spec.format.basetype == oiio.UINT8:
@@ -115,3 +132,39 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
 def read_mask(path: str | Path) -> np.ndarray:
     """A boolean object mask from an image file (any channel > 0.5)."""
     return np.any(read_image(path)[..., :3] > 0.5, axis=-1)
+
+
+#: Image types the renderer's bitmap textures and environment maps read.
+TEXTURE_SUFFIXES = (
+    ".exr",
+    ".png",
+    ".jpg",
+    ".jpeg",
+    ".hdr",
+    ".rgbe",
+    ".pfm",
+    ".ppm",
+    ".tga",
+    ".bmp",
+)
+
+
+def image_problem(path: str | Path) -> str | None:
+    """Why `path` is not an image file the renderer can load (None when it is one): missing, a
+    folder, an unsupported type, or not decodable (its header is read, not its pixels)."""
+    path = Path(path)
+    if path.is_dir():
+        return f"'{path.name}' is a folder, not an image; give an image file"
+    if not path.is_file():
+        return f"'{path.name}' does not exist"
+    if path.suffix.lower() not in TEXTURE_SUFFIXES:
+        return f"'{path.name}' is not a supported image type; use {', '.join(TEXTURE_SUFFIXES)}"
+    reader = oiio.ImageInput.open(str(path))
+    if reader is None:
+        return f"'{path.name}' is not a readable image ({oiio.geterror().strip()}); convert it"
+    oiio.geterror()  # nothing pending
+    spec = reader.spec()
+    reader.close()
+    if spec.width < 1 or spec.height < 1 or spec.nchannels < 1:
+        return f"'{path.name}' has no pixels; give another image"
+    return None

@@ -49,6 +49,40 @@ def fit_sphere_to_mask(mask: np.ndarray) -> tuple[float, float, float]:
     return float(xs.mean() + 0.5), float(ys.mean() + 0.5), float(np.sqrt(len(xs) / np.pi))
 
 
+def _diligent_text(path: Path) -> str:
+    try:
+        return path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise CaptureError(
+            f"{path}: missing; a DiLiGenT folder holds filenames.txt, light_directions.txt, "
+            "light_intensities.txt and mask.png"
+        ) from None
+    except UnicodeDecodeError:
+        raise CaptureError(f"{path}: not text; give the benchmark's file") from None
+    except OSError as err:
+        raise CaptureError(f"{path}: cannot read ({err.strerror})") from None
+
+
+def _diligent_rows(path: Path) -> np.ndarray:
+    """The (N, 3) finite numbers of a DiLiGenT light file, or a one-line `CaptureError`."""
+    rows = []
+    for number, line in enumerate(_diligent_text(path).splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            values = [float(v) for v in line.split()]
+        except ValueError:
+            raise CaptureError(
+                f"{path}: row {number} is {line.strip()[:40]!r}; each row is three numbers"
+            ) from None
+        if len(values) != 3 or not all(np.isfinite(values)):
+            raise CaptureError(
+                f"{path}: row {number} is {line.strip()[:40]!r}; each row is three finite numbers"
+            )
+        rows.append(values)
+    return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
+
+
 def diligent_capture(folder: str | Path, downscale: int = 1) -> Capture:
     """A DiLiGenT object folder: one orthographic view per light, lights as distant sources from
     `light_directions.txt` (camera frame: x right, y up, z towards the camera), each image divided
@@ -58,19 +92,34 @@ def diligent_capture(folder: str | Path, downscale: int = 1) -> Capture:
     right, y up; the sphere sits at z = 0.
     """
     folder = Path(folder)
-    try:
-        names = (folder / "filenames.txt").read_text().split()
-        directions = np.loadtxt(folder / "light_directions.txt")
-        intensities = np.loadtxt(folder / "light_intensities.txt")
-    except FileNotFoundError as err:
-        raise CaptureError(
-            f"{folder}: not a DiLiGenT folder ({Path(err.filename).name} missing)"
-        ) from None
+    names = _diligent_text(folder / "filenames.txt").split()
+    directions = _diligent_rows(folder / "light_directions.txt")
+    intensities = _diligent_rows(folder / "light_intensities.txt")
     if not (len(names) == len(directions) == len(intensities)):
-        raise CaptureError(f"{folder}: filenames, light directions and intensities differ in count")
+        raise CaptureError(
+            f"{folder}: filenames.txt has {len(names)} names but light_directions.txt "
+            f"{len(directions)} rows and light_intensities.txt {len(intensities)}; give one row "
+            "per image in each"
+        )
+    for row, (name, direction, intensity) in enumerate(
+        zip(names, directions, intensities, strict=True), 1
+    ):
+        if not np.linalg.norm(direction) > 1e-6:
+            raise CaptureError(
+                f"{folder / 'light_directions.txt'}: row {row} ({name}) is the zero vector; give "
+                "the unit direction towards the light"
+            )
+        if not np.all(intensity > 0):
+            raise CaptureError(
+                f"{folder / 'light_intensities.txt'}: row {row} ({name}) is {intensity.tolist()}; "
+                "every intensity must be > 0 (each image is divided by its row)"
+            )
     mask = read_mask(folder / "mask.png")
     h, w = mask.shape
-    cx, cy, radius = fit_sphere_to_mask(mask)
+    try:
+        cx, cy, radius = fit_sphere_to_mask(mask)
+    except CaptureError as err:
+        raise CaptureError(f"{folder / 'mask.png'}: {err}; give the object's mask") from None
     camera = Camera(
         origin=(0.0, 0.0, 10.0 * max(w, h)),
         target=(0.0, 0.0, 0.0),

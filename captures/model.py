@@ -94,7 +94,7 @@ def _existing(path: Path, info: ValidationInfo) -> Path:
     folder = config_folder(info)
     resolved = (folder / path).resolve()
     if not resolved.exists():
-        raise ValueError(f"'{path}' does not exist (relative to {folder})")
+        raise ValueError(f"'{path}' does not exist (relative to {folder}); check the path")
     return resolved
 
 

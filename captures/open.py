@@ -13,12 +13,35 @@ def open_capture(path: str | Path, downscale: int = 1) -> Capture:
     """A capture manifest (file or folder), a peer `scene.json`, or a DiLiGenT folder, area-
     averaged by `downscale` (every kind: the cameras follow)."""
     path = Path(path)
+    if downscale < 1:
+        raise CaptureError(f"{path}: downscale = {downscale}; give an integer >= 1")
+    if not path.exists():
+        raise CaptureError(
+            f"{path}: no such capture; give a capture.toml, its folder, a peer "
+            "scene.json or a DiLiGenT folder"
+        )
+    if path.is_file() and path.name != "scene.json" and path.suffix.lower() != ".toml":
+        raise CaptureError(
+            f"{path}: is not a capture; give its capture.toml (or the folder holding it), a peer "
+            "scene.json or a DiLiGenT folder"
+        )
     if path.is_dir() and (path / "filenames.txt").exists():
         return diligent_capture(path, downscale)
     if path.name == "scene.json":
-        capture = peer_capture(path)
+        try:
+            capture = peer_capture(path)
+        except CaptureError:
+            raise
+        except (ValueError, TypeError, KeyError, AttributeError, IndexError) as err:
+            raise CaptureError(
+                f"{path}: not a peer scene.json this version reads ({type(err).__name__}: {err}); "
+                "check it against the peer format"
+            ) from None
     elif path.is_dir() and not (path / "capture.toml").exists():
-        raise CaptureError(f"{path}: no capture.toml, scene.json or DiLiGenT files in the folder")
+        raise CaptureError(
+            f"{path}: no capture.toml, scene.json or DiLiGenT files in the folder; give a "
+            "capture folder"
+        )
     else:
         capture = load_capture(path)
     return capture.downscaled(downscale)

@@ -1,6 +1,8 @@
 """Camera RAW to linear Rec.709 with rawpy (LibRaw's decoder), every step explicit.
 
-Black levels are subtracted per channel and the white level scales to 1; the Bayer mosaic is
+The file's default crop (DNG DefaultCrop) is applied first. Black levels are subtracted per
+channel and the white level scales to 1; sensels at the white level, or at a clipping plateau
+below it (`clip_level`), are saturated; the Bayer mosaic is
 demosaiced by 2x2 superpixels (each RGGB block becomes one pixel: exact linear values, half
 resolution, no interpolation); the white balance is the camera's as-shot one (as rawpy reports it),
 given multipliers, or none; the camera RGB is mapped to linear Rec.709 by the file's colour matrix
@@ -19,6 +21,11 @@ from .errors import CaptureError
 
 #: A RAW whose pixels are this share or more at or below black carries no picture.
 MAX_BLACK_SHARE = 0.99
+#: A RAW file smaller than this many bits per sensel cannot hold its picture (lossless
+#: compression of camera data reaches about 4 bits per sensel).
+MIN_BITS_PER_SENSEL = 1.0
+#: Sensels sharing the peak value (this share of them) mark a clipping plateau.
+PLATEAU_SHARE = 1e-5
 
 
 @dataclass(frozen=True)
@@ -32,7 +39,40 @@ class RawImage:
     color_matrix: np.ndarray  # white-balanced camera RGB -> linear Rec.709 (3, 3)
 
 
+def default_crop(sizes, shape: tuple[int, int]) -> tuple[int, int, int, int] | None:
+    """(top, left, height, width) of the file's default crop (DNG DefaultCrop, LibRaw's first
+    inset crop) inside the visible area of `shape`, or None when there is none or it is the whole
+    area. LibRaw gives its origin in full-raw coordinates (the visible area's margins included);
+    an origin that only fits as visible-area coordinates is read as such."""
+    height, width = int(sizes.crop_height), int(sizes.crop_width)
+    if height <= 0 or width <= 0:
+        return None
+    for top, left in (
+        (sizes.crop_top_margin - sizes.top_margin, sizes.crop_left_margin - sizes.left_margin),
+        (sizes.crop_top_margin, sizes.crop_left_margin),
+    ):
+        if 0 <= top and 0 <= left and top + height <= shape[0] and left + width <= shape[1]:
+            if (top, left, height, width) == (0, 0, *shape):
+                return None
+            return int(top), int(left), height, width
+    return None
+
+
+def clip_level(mosaic: np.ndarray, black: float, white: float) -> float:
+    """The raw value at which sensels clip: the white level, or lower when the data's peak is a
+    plateau in the top quarter of the range (some cameras clip below their stated white level:
+    a Blackmagic DNG peaks at 65472 for 65535). A plateau: at least `PLATEAU_SHARE` of the
+    sensels (and 16) hold exactly the peak value."""
+    peak = float(mosaic.max())
+    if peak >= white or peak < black + 0.75 * (white - black):
+        return white
+    count = int(np.count_nonzero(mosaic == peak))
+    return peak if count >= max(16, PLATEAU_SHARE * mosaic.size) else white
+
+
 def read_raw(path: str | Path) -> RawImage:
+    """A RAW file's camera RGB (2x2 superpixels of its default crop), saturation and colour
+    metadata, or a one-line `CaptureError`."""
     path = Path(path)
     if not path.exists():
         raise CaptureError(f"{path}: no such RAW file")
@@ -47,6 +87,7 @@ def read_raw(path: str | Path) -> RawImage:
             wb = np.asarray(raw.camera_whitebalance[:3], dtype=np.float64)
             cmatrix = np.asarray(raw.color_matrix, dtype=np.float64)[:, :3]
             rgb_xyz = np.asarray(raw.rgb_xyz_matrix, dtype=np.float64)[:3]
+            sizes = raw.sizes
     except (rawpy.LibRawError, OSError, ValueError) as err:
         raise CaptureError(
             f"{path}: LibRaw cannot decode this RAW file ({type(err).__name__}: {err}); "
@@ -54,6 +95,19 @@ def read_raw(path: str | Path) -> RawImage:
         ) from None
     if desc not in ("RGBG", "RGGB") or pattern.shape != (2, 2):
         raise CaptureError(f"{path}: colour filter {desc!r} is not a Bayer RGB mosaic")
+    size, sensels = path.stat().st_size, int(sizes.raw_width) * int(sizes.raw_height)
+    if size * 8 < MIN_BITS_PER_SENSEL * sensels:  # LibRaw leaves the missing data undefined
+        raise CaptureError(
+            f"{path}: {size} bytes cannot hold {sizes.raw_width}x{sizes.raw_height} raw sensels: "
+            "the file holds no usable picture (a thumbnail-only, metadata stub or truncated file?)"
+        )
+    crop = default_crop(sizes, mosaic.shape)
+    if crop is not None:
+        top, left, height, width = crop
+        mosaic = mosaic[top : top + height, left : left + width]
+        colors = colors[top : top + height, left : left + width]
+    if min(mosaic.shape) < 2:
+        raise CaptureError(f"{path}: the raw image is {mosaic.shape[1]}x{mosaic.shape[0]} sensels")
     level = black[colors]
     if np.mean(mosaic <= level) > MAX_BLACK_SHARE:
         raise CaptureError(
@@ -63,21 +117,23 @@ def read_raw(path: str | Path) -> RawImage:
     if white <= black.max():
         raise CaptureError(f"{path}: white level {white} is not above the black level")
     normalised = np.clip((mosaic - level) / (white - level), 0.0, None)
-    saturated = mosaic >= white
+    saturated = mosaic >= clip_level(mosaic, float(black.max()), white)
 
-    # 2x2 superpixels: R, the mean of the greens, B
+    # 2x2 superpixels: R, the mean of the greens, B (the phase from the cropped colour indices)
     h, w = (s // 2 * 2 for s in mosaic.shape)
     channel_of = {"R": 0, "G": 1, "B": 2}
     sums = np.zeros((h // 2, w // 2, 3), np.float32)
-    counts = np.zeros(3)
+    counts = np.zeros(3, np.float32)
     sat = np.zeros((h // 2, w // 2), bool)
     for i in range(2):
         for j in range(2):
-            c = channel_of[desc[pattern[i, j]]]
+            c = channel_of[desc[colors[i, j]]]
             sums[..., c] += normalised[i:h:2, j:w:2]
             counts[c] += 1
             sat |= saturated[i:h:2, j:w:2]
-    camera_rgb = sums / counts
+    if np.any(counts == 0):
+        raise CaptureError(f"{path}: the 2x2 mosaic lacks a colour ({desc!r}); not a Bayer RAW")
+    camera_rgb = (sums / counts).astype(np.float32)
 
     if not np.any(wb) or wb[1] == 0:
         raise CaptureError(f"{path}: the file has no as-shot white balance; give multipliers")
@@ -100,8 +156,9 @@ def develop(raw: RawImage, white_balance: str | np.ndarray = "camera") -> np.nda
         multipliers = {"camera": raw.camera_wb, "none": np.ones(3)}[white_balance]
     else:
         multipliers = np.asarray(white_balance, dtype=np.float64)
-    balanced = raw.camera_rgb * multipliers.astype(np.float32)
-    return np.clip(balanced @ raw.color_matrix.T.astype(np.float32), 0.0, None)
+    balanced = raw.camera_rgb.astype(np.float32) * multipliers.astype(np.float32)
+    developed = balanced @ raw.color_matrix.T.astype(np.float32)
+    return np.clip(developed, 0.0, None).astype(np.float32)
 
 
 def white_balance_from_patch(raw: RawImage, x: int, y: int, half: int = 6) -> np.ndarray:

@@ -71,11 +71,20 @@ from .scene import (
 def load_toml(path: Path, what: str = "file") -> dict:
     """A TOML document, or a `CaptureError` naming the file and what is wrong with it."""
     try:
-        return tomllib.loads(Path(path).read_text())
+        return tomllib.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise CaptureError(f"{path}: no such {what}") from None
+    except IsADirectoryError:
+        raise CaptureError(f"{path}: is a folder; give the {what} (a TOML file)") from None
+    except UnicodeDecodeError as err:
+        raise CaptureError(
+            f"{path}: not UTF-8 text ({err.reason} at byte {err.start}); the {what} is a TOML "
+            "file saved as UTF-8"
+        ) from None
     except tomllib.TOMLDecodeError as err:
-        raise CaptureError(f"{path}: not valid TOML ({err})") from None
+        raise CaptureError(f"{path}: not valid TOML ({err}); fix the syntax") from None
+    except OSError as err:
+        raise CaptureError(f"{path}: cannot read ({err.strerror})") from None
 
 
 # Geometry -----------------------------------------------------------------------------------------
@@ -372,6 +381,16 @@ class EnvMapSpec(StrictModel):
     """The linear image, relative to the TOML file's folder."""
     scale: PositiveFloat = 1.0
     """Factor on the map's values."""
+
+    @field_validator("file")
+    @classmethod
+    def _is_image(cls, path: Path) -> Path:
+        from .images import image_problem
+
+        problem = image_problem(path)
+        if problem is not None:
+            raise ValueError(problem)
+        return path
 
     def build(self) -> EnvMap:
         return EnvMap(self.file, self.scale)

@@ -2,21 +2,36 @@
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import logging
+import math
+import os
+import signal
 import sys
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Annotated
 
 import numpy as np
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.text import Text
 
 from captures.errors import InputError
 
 from .variant import BackendError, select_variant
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
+# rich_markup_mode=None: help texts are plain (a "[truth]" in them is shown, not read as markup)
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help=__doc__,
+    rich_markup_mode=None,
+    pretty_exceptions_enable=False,
+)
 console = Console(stderr=True)
 
 VariantOption = Annotated[
@@ -27,10 +42,37 @@ VariantOption = Annotated[
 ]
 
 
-def _fail(err: Exception, code: int) -> typer.Exit:
+#: The largest seed (the renders' seeds are 32-bit).
+MAX_SEED = 2**32 - 1
+#: Image types `render --out` writes.
+IMAGE_SUFFIXES = (".png", ".exr", ".tif", ".tiff", ".jpg", ".jpeg")
+
+
+def _say(label: str, style: str, text: str) -> None:
+    """One unwrapped line `label text`, the text plain (brackets in it are shown, not markup)."""
+    console.print(Text.assemble((label, style), " ", str(text)), highlight=False, soft_wrap=True)
+
+
+def _fail(err: Exception | str, code: int) -> typer.Exit:
     """Print one unwrapped error line; return the exit to raise."""
-    console.print(f"[red]error:[/] {err}", highlight=False, soft_wrap=True)
+    _say("error:", "red", str(err))
     return typer.Exit(code)
+
+
+def _finite(value: float) -> float:
+    """A float option's check: NaN and infinity are refused (click's ranges let NaN through)."""
+    if value is not None and not math.isfinite(value):
+        raise typer.BadParameter(f"{value} is not a finite number")
+    return value
+
+
+@contextlib.contextmanager
+def _interruptible(what: Callable[[], str]) -> Iterator[None]:
+    """Ctrl-C (or SIGTERM) inside: one line saying what was kept (`what()`), exit 130."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        raise _fail(f"interrupted: {what()}", 130) from None
 
 
 def _scene_and_material(config: Path, scene: Path | None):
@@ -52,7 +94,7 @@ def _scene_and_material(config: Path, scene: Path | None):
             return cfg.scene, material, spp
     table = read_toml(scene)
     if "scene" not in table:
-        raise CaptureError(f"{scene}: no [scene] table")
+        raise CaptureError(f"{scene}: no [scene] table; give a TOML file with one")
     return parse_scene(table["scene"], scene), material, spp
 
 
@@ -92,17 +134,28 @@ def render(
         Path, typer.Option(help="Output PNG (sRGB); a linear EXR is written beside it.")
     ] = Path("out/render.png"),
     spp: Annotated[
-        int | None, typer.Option(help="Samples per pixel (overrides the config).")
+        int | None, typer.Option(min=1, help="Samples per pixel (overrides the config).")
     ] = None,
-    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    seed: Annotated[int, typer.Option(min=0, max=MAX_SEED, help="Random seed.")] = 0,
+    force: Annotated[bool, typer.Option("--force", help="Replace existing output images.")] = False,
     variant: VariantOption = None,
 ) -> None:
     """Render a config's scene with its material (or a preset's material in --scene's scene): a
     linear EXR and an sRGB PNG per view."""
+    from captures.files import check_output
     from captures.images import write_image
 
     try:
         the_scene, material, config_spp = _scene_and_material(config, scene)
+        views = len(the_scene.cameras)
+        paths = []
+        for view in range(views):
+            stem = out.with_suffix("") if views == 1 else out.with_name(f"{out.stem}_{view:02d}")
+            files = dict.fromkeys((stem.with_suffix(".exr"), stem.with_suffix(out.suffix)))
+            paths.append(list(files))
+        inputs = _inputs(config, scene, the_scene, material)
+        for path in (p for files in paths for p in files):
+            check_output(path, "--out", force=force, inputs=inputs, suffixes=IMAGE_SUFFIXES)
     except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)
@@ -112,22 +165,39 @@ def render(
     from .render import scene_dict
 
     spp = spp or config_spp
-    views = len(the_scene.cameras)
-    with _progress() as bar:
+    written = 0
+    n_files = sum(map(len, paths))
+    with _interruptible(lambda: f"wrote {written} of {n_files} images"), _progress() as bar:
         for view in range(views):
             task = bar.add_task(f"view {view}", total=spp)
             loaded = mi.load_dict(scene_dict(the_scene, material.bsdf, view, spp))
             image = render_image(loaded, spp, seed, lambda n, t=task: bar.update(t, completed=n))
-            stem = out.with_suffix("") if views == 1 else out.with_name(f"{out.stem}_{view:02d}")
-            for path in (stem.with_suffix(".exr"), stem.with_suffix(out.suffix or ".png")):
+            for path in paths[view]:
                 write_image(path, image)
-                console.print(f"wrote {path}")
+                written += 1
+                console.print(f"wrote {path}", markup=False, highlight=False)
+
+
+def _inputs(config: Path, scene_file: Path | None, scene, material) -> list[Path]:
+    """Every file a render reads: the config, the scene file, textures, mesh, environment."""
+    from captures.scene import EnvMap, ObjFile
+
+    files = [config, *material.texture_files().values()]
+    if scene_file is not None:
+        files.append(scene_file)
+    if isinstance(scene.geometry, ObjFile):
+        files.append(scene.geometry.path)
+    if isinstance(scene.environment, EnvMap):
+        files.append(scene.environment.path)
+    return files
 
 
 @app.command()
 def bench(
-    spp: Annotated[int, typer.Option(help="Samples per pixel of each timed render.")] = 64,
-    repeats: Annotated[int, typer.Option(help="Timed renders per case (median reported).")] = 7,
+    spp: Annotated[int, typer.Option(min=1, help="Samples per pixel of each timed render.")] = 64,
+    repeats: Annotated[
+        int, typer.Option(min=1, help="Timed renders per case (median reported).")
+    ] = 7,
     only: Annotated[
         str | None, typer.Option(help="Run one table: bsdf, cup or fit (not run by default).")
     ] = None,
@@ -135,12 +205,20 @@ def bench(
         Path, typer.Option(help="--only fit: the fit config whose schedules are compared.")
     ] = Path("configs/peer-sphere.toml"),
     out: Annotated[Path | None, typer.Option(help="Also write the tables (Markdown) here.")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Replace an existing --out.")] = False,
     variant: VariantOption = None,
 ) -> None:
     """Speed tables: our BSDFs vs Mitsuba's built-ins, the cup's stack vs its layers, and (with
     --only fit, minutes) fit schedules' wall time vs accuracy."""
+    from captures.files import check_output, write_text
+
     if only not in (None, "bsdf", "cup", "fit"):
-        raise _fail(ValueError(f"--only {only!r}: choose bsdf, cup or fit"), 2)
+        raise _fail(f"--only {only!r}: choose bsdf, cup or fit", 2)
+    try:
+        if out is not None:
+            check_output(out, "--out", force=force, inputs=[fit_config])
+    except InputError as err:
+        raise _fail(err, 2) from None
     _start(variant)
     from .commands.bench import bsdf_speed_table, cup_speed_table, fit_trade_table
 
@@ -158,8 +236,8 @@ def bench(
     for table in tables:
         console.print(table.rich())
     if out is not None:
-        out.write_text("\n".join(t.markdown() for t in tables))
-        console.print(f"wrote {out}")
+        write_text(out, "\n".join(t.markdown() for t in tables))
+        console.print(f"wrote {out}", markup=False, highlight=False)
 
 
 @app.command()
@@ -175,32 +253,62 @@ def synth(
         str, typer.Option("--format", help="exr (linear), png (16-bit sRGB), jpg (8-bit sRGB).")
     ] = "exr",
     spp: Annotated[
-        int | None, typer.Option(help="Samples per pixel (default: the config's).")
+        int | None, typer.Option(min=1, help="Samples per pixel (default: the config's).")
     ] = None,
-    seed: Annotated[int, typer.Option(help="Seed of the renders and the degradations.")] = 0,
-    shot: Annotated[float, typer.Option(help="Shot noise: variance = shot * signal.")] = 0.0,
-    read: Annotated[float, typer.Option(help="Read noise standard deviation.")] = 0.0,
+    seed: Annotated[
+        int, typer.Option(min=0, max=MAX_SEED, help="Seed of the renders and the degradations.")
+    ] = 0,
+    shot: Annotated[
+        float,
+        typer.Option(
+            min=0, max=1e6, callback=_finite, help="Shot noise: variance = shot x signal."
+        ),
+    ] = 0.0,
+    read: Annotated[
+        float, typer.Option(min=0, max=1e6, callback=_finite, help="Read noise standard deviation.")
+    ] = 0.0,
     exposure_ev: Annotated[
-        float, typer.Option(help="Random exposure offset per view, +- EV.")
+        float,
+        typer.Option(
+            min=0, max=10, callback=_finite, help="Random exposure offset per view, +- EV (0-10)."
+        ),
     ] = 0.0,
     exposure_base: Annotated[
-        float, typer.Option(help="Exposure of every view, EV (negative: darker, fewer clipped).")
+        float,
+        typer.Option(
+            min=-20,
+            max=20,
+            callback=_finite,
+            help="Exposure of every view, EV (negative: darker, fewer clipped).",
+        ),
     ] = 0.0,
+    force: Annotated[
+        bool, typer.Option("--force", help="Replace an existing capture folder at --out.")
+    ] = False,
     variant: VariantOption = None,
 ) -> None:
     """Render a synthetic capture (images, manifest, [truth]) from a config (or a preset with
     --scene)."""
+    from captures.files import check_output
+
     try:
         the_scene, material, config_spp = _scene_and_material(config, scene)
+        if fmt not in ("exr", "png", "jpg"):
+            raise InputError(f"--format {fmt!r}: unknown format; choose one of exr, png, jpg")
+        inputs = _inputs(config, scene, the_scene, material)
+        check_output(out, "--out", force=force, inputs=inputs, folder=True)
+        if out.is_dir() and any(out.iterdir()) and not (out / "capture.toml").is_file():
+            raise InputError(
+                f"--out {out}: is a folder but not a capture (no capture.toml); --force replaces "
+                "only a capture folder: choose another path"
+            )
     except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)
-    from .commands.synth import FORMATS, Degradation, synthesize
+    from .commands.synth import Degradation, synthesize
 
-    if fmt not in FORMATS:
-        raise _fail(ValueError(f"--format {fmt!r}: choose one of {', '.join(FORMATS)}"), 2)
     spp = spp or config_spp
-    with _progress() as bar:
+    with _interruptible(lambda: "nothing written"), _progress() as bar:
         tasks = [bar.add_task(f"view {i}", total=spp) for i in range(len(the_scene.cameras))]
         try:
             path = synthesize(
@@ -212,10 +320,11 @@ def synth(
                 fmt,
                 Degradation(shot, read, exposure_ev, exposure_base),
                 lambda view, n: bar.update(tasks[view], completed=n),
+                replace=force,
             )
-        except (FileExistsError, ValueError) as err:
+        except (InputError, FileExistsError) as err:
             raise _fail(err, 2) from None
-    console.print(f"wrote {path}")
+    console.print(f"wrote {path}", markup=False, highlight=False)
 
 
 @app.command()
@@ -230,41 +339,55 @@ def inspect(
         Path | None, typer.Option(help="Contact sheet PNG (default: out/inspect-<name>.png).")
     ] = None,
     silhouette: Annotated[bool, typer.Option(help="Render the scene's silhouette (IoU).")] = True,
-    downscale: Annotated[int, typer.Option(help="DiLiGenT only: area-average by this factor.")] = 1,
+    downscale: Annotated[
+        int, typer.Option(min=1, help="Area-average the images by this factor first.")
+    ] = 1,
+    force: Annotated[bool, typer.Option("--force", help="Replace an existing sheet.")] = False,
     variant: VariantOption = None,
 ) -> None:
     """A table of the views (size, gain, valid pixels, silhouette IoU) and a contact sheet."""
     from rich.table import Table as RichTable
 
     from captures import open_capture
+    from captures.files import check_output
 
+    name = capture.stem if capture.name != "scene.json" else capture.parent.name
+    sheet = sheet or Path("out") / f"inspect-{name}.png"
+    try:
+        cap = open_capture(capture, downscale)
+        folder = Path(cap.path or capture)
+        folder = folder if folder.is_dir() else folder.parent
+        if sheet.resolve().is_relative_to(folder.resolve()):
+            raise InputError(
+                f"--sheet {sheet}: is inside the capture folder {folder}; write the sheet "
+                "elsewhere (a capture's files are never overwritten)"
+            )
+        check_output(sheet, "--sheet", force=force, inputs=[capture], suffixes=(".png",))
+    except InputError as err:
+        raise _fail(err, 2) from None
     _start(variant)
     from .commands.inspect import contact_sheet, silhouettes, summary
 
-    try:
-        cap = open_capture(capture, downscale)
-    except InputError as err:
-        raise _fail(err, 2) from None
     for warning in cap.warnings:
-        console.print(f"[yellow]warning:[/] {warning}", highlight=False, soft_wrap=True)
-    coverage = silhouettes(cap) if silhouette else None
-    rows = summary(cap, coverage)
-    table = RichTable(title=f"{capture}: {len(rows)} views")
-    for column in ("view", "size", "gain", "valid", "max", "iou"):
-        table.add_column(column)
-    for row in rows:
-        table.add_row(
-            row["view"],
-            row["size"],
-            f"{row['gain']:.3g}",
-            f"{row['valid']:.1%}",
-            f"{row['max']:.3g}",
-            f"{row['iou']:.3f}" if "iou" in row else "-",
-        )
-    console.print(table)
-    name = capture.stem if capture.name != "scene.json" else capture.parent.name
-    out = contact_sheet(cap, coverage, sheet or Path("out") / f"inspect-{name}.png")
-    console.print(f"wrote {out}")
+        _say("warning:", "yellow", warning)
+    with _interruptible(lambda: "no sheet written"):
+        coverage = silhouettes(cap) if silhouette else None
+        rows = summary(cap, coverage)
+        table = RichTable(title=escape(f"{capture}: {len(rows)} views"))
+        for column in ("view", "size", "gain", "valid", "max", "iou"):
+            table.add_column(column)
+        for row in rows:
+            table.add_row(
+                escape(row["view"]),
+                row["size"],
+                f"{row['gain']:.3g}",
+                f"{row['valid']:.1%}",
+                f"{row['max']:.3g}",
+                f"{row['iou']:.3f}" if "iou" in row else "-",
+            )
+        console.print(table)
+        out = contact_sheet(cap, coverage, sheet)
+    console.print(f"wrote {out}", markup=False, highlight=False)
 
 
 @app.command()
@@ -292,6 +415,7 @@ def fit(
     from .config import load_fit_config
 
     out = out or Path("out") / config.stem
+    created = not out.exists()
     try:
         cfg = load_fit_config(config)
         from .commands.fit import check_output
@@ -299,9 +423,22 @@ def fit(
         check_output(out, cfg, resume, force)
     except InputError as err:
         raise _fail(err, 2) from None
-    _start(variant)
-    from .commands.fit import Interrupted, run_fit
 
+    def forget_out() -> None:  # a failed start leaves no empty run folder
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+
+    _start(variant)
+    from .commands.fit import Interrupted, prepare, run_fit
+
+    try:
+        prepared = prepare(cfg, holdout)
+    except InputError as err:
+        forget_out()
+        raise _fail(err, 2) from None
+    except KeyboardInterrupt:
+        forget_out()
+        raise _fail("interrupted before the fit began: nothing written", 130) from None
     with _progress() as bar:
         tasks = [
             bar.add_task(
@@ -312,25 +449,29 @@ def fit(
         ]
         try:
             summary = run_fit(
-                cfg, out, lambda k, n, loss: bar.update(tasks[k], completed=n), resume, holdout
+                cfg,
+                out,
+                lambda k, n, loss: bar.update(tasks[k], completed=n),
+                resume,
+                holdout,
+                prepared,
             )
-        except (InputError, KeyError) as err:  # before any work: leave no empty run folder
-            if out.is_dir() and not any(out.iterdir()):
-                out.rmdir()
-            if isinstance(err, KeyError):  # a free key: name the config it came from
-                err = ValueError(f"{config}: fit.free: {err.args[0]}")
+        except InputError as err:
+            forget_out()
             raise _fail(err, 2) from None
-        except Interrupted:
+        except (Interrupted, KeyboardInterrupt):
             bar.stop()
-            console.print(
-                f"interrupted: checkpoint saved; resume with: layerfit fit {config} --out {out} "
-                "--resume",
-                highlight=False,
-                soft_wrap=True,
+            forget_out()
+            _say(
+                "interrupted:",
+                "yellow",
+                f"checkpoint saved; resume with: layerfit fit {config} --out {out} --resume"
+                if (out / "checkpoint.npz").exists()
+                else "nothing to resume (stopped before the first checkpoint)",
             )
             raise typer.Exit(130) from None
     solvers = "+".join(p.solver for p in cfg.phases)
-    table = RichTable(title=f"{config}: {solvers}, {summary['wall_time_s']:.1f} s")
+    table = RichTable(title=escape(f"{config}: {solvers}, {summary['wall_time_s']:.1f} s"))
     table.add_column("parameter", no_wrap=True)
     for column in ("start", "fitted", "std", "known", "error", "error/std"):
         table.add_column(column)
@@ -356,20 +497,19 @@ def fit(
         )
     console.print(table)
     if summary["poorly_determined"]:
-        console.print(f"[yellow]poorly determined:[/] {', '.join(summary['poorly_determined'])}")
+        _say("poorly determined:", "yellow", ", ".join(summary["poorly_determined"]))
     if summary["std"] is None:
         console.print("no uncertainty: too many free components for a Jacobian (textures)")
     for report in summary["outcomes"]:
         if report["outcome"] in ("diverged", "failed") or report["rejected"]:
-            console.print(
-                f"[yellow]{report['solver']}:[/] {report['outcome']}: {report['message']}",
-                highlight=False,
-            )
+            _say(f"{report['solver']}:", "yellow", f"{report['outcome']}: {report['message']}")
     held = [v for v in summary["views"] if v["held_out"]]
     if held:
         scores = ", ".join(f"{v['name']} {v['rmse']:.3f}" for v in held)
-        console.print(f"held-out views, relative RMSE: {scores}", highlight=False)
-    console.print(f"run folder: {out} (preset.toml, summary.json, report.html)", highlight=False)
+        console.print(f"held-out views, relative RMSE: {scores}", highlight=False, markup=False)
+    console.print(
+        f"run folder: {out} (preset.toml, summary.json, report.html)", highlight=False, markup=False
+    )
 
 
 @app.command()
@@ -387,7 +527,7 @@ def export(
     force: Annotated[
         bool, typer.Option("--force", help="Replace an existing non-empty output folder.")
     ] = False,
-    size: Annotated[int, typer.Option(help="Texels per side of baked images.")] = 1024,
+    size: Annotated[int, typer.Option(min=1, max=16384, help="Texels per side of baked images.")] = 1024,
     variant: VariantOption = None,
 ) -> None:
     """Export a preset to Mitsuba XML, MaterialX (OpenPBR) or USD (UsdPreviewSurface); what each
@@ -423,13 +563,65 @@ def export(
             )
         except InputError as err:
             raise _fail(err, 2) from None
-    console.print(f"wrote {path}", highlight=False)
+    console.print(f"wrote {path}", highlight=False, markup=False)
 
 
-def main() -> None:
+def _terminate(signum, frame) -> None:
+    """SIGTERM stops like Ctrl-C: partial outputs are removed (a fit keeps its checkpoint)."""
+    raise KeyboardInterrupt
+
+
+def main(argv: list[str] | None = None) -> None:
+    """The `layerfit` entry point: every failure is one line on stderr and an exit status (2 for
+    bad input or usage, 130 when interrupted, 1 otherwise); `LAYERFIT_DEBUG=1` shows
+    tracebacks of unexpected errors."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    previous = None
+    with contextlib.suppress(ValueError):  # only the main thread may set handlers
+        previous = signal.signal(signal.SIGTERM, _terminate)
     try:
-        app()
+        code = _run(argv)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    sys.exit(code)
+
+
+@functools.cache
+def _command():
+    """The app's click command, built once (typer rebuilds it on every call otherwise)."""
+    return typer.main.get_command(app)
+
+
+def _run(argv: list[str] | None) -> int:
+    """Run the app; the exit status, every failure printed as one line."""
+    try:
+        code = _command().main(args=argv, prog_name="layerfit", standalone_mode=False)
+    except typer.TyperException as err:  # usage: an unknown option, a value out of range
+        if type(err).__name__ == "NoArgsIsHelpError":  # `layerfit` alone: the help
+            err.show()
+        else:
+            ctx = getattr(err, "ctx", None)
+            where = f"; see '{ctx.command_path} --help'" if ctx is not None else ""
+            _say("error:", "red", f"{err.format_message().rstrip('.')}{where}")
+        code = err.exit_code
+    except typer.Abort:
+        code = 130
     except BackendError as err:  # raised outside _start, e.g. by a library call
-        console.print(f"[red]error:[/] {err}", highlight=False, soft_wrap=True)
-        sys.exit(1)
+        _say("error:", "red", str(err))
+        code = 1
+    except InputError as err:  # a command that let one through
+        _say("error:", "red", str(err))
+        code = 2
+    except Exception as err:
+        if os.environ.get("LAYERFIT_DEBUG"):
+            raise
+        first = (str(err).strip().splitlines() or [""])[0][:300]
+        _say(
+            "error:",
+            "red",
+            f"internal error ({type(err).__name__}: {first}); please report it with the "
+            "command (LAYERFIT_DEBUG=1 shows the traceback)",
+        )
+        code = 1
+    return code if isinstance(code, int) else 0

@@ -62,7 +62,7 @@ class ParamSpec:
         """Raise a `ValueError` naming `where` and the fix when `value` is outside the bounds."""
         values = np.atleast_1d(np.asarray(value, dtype=float))
         if not np.all(np.isfinite(values)):
-            raise ValueError(f"{where}: {self.key} = {value} is not finite")
+            raise ValueError(f"{where}: {self.key} = {value} is not finite; give a number")
         if np.any(values < self.lower) or np.any(values > self.upper):
             raise ValueError(
                 f"{where}: {self.key} = {value} is outside its bounds [{self.lower}, {self.upper}]"
@@ -235,7 +235,10 @@ class IntOption:
 
     def check(self, value, where: str) -> int:
         """`value` as an int, or a `ValueError` naming `where` and the range."""
-        if isinstance(value, bool) or int(value) != value or not self.lower <= value <= self.upper:
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not number or value != value or int(min(max(value, -1e18), 1e18)) != value or not (
+            self.lower <= value <= self.upper
+        ):
             raise ValueError(
                 f"{where}: {self.key} = {value!r}; use an integer in [{self.lower}, {self.upper}]"
             )

@@ -53,7 +53,10 @@ def held_out(n_views: int, n: int) -> list[int]:
     if n == 0:
         return []
     if not 0 < n < n_views:
-        raise InputError(f"holdout = {n}: keep at least one of the {n_views} views in the fit")
+        raise InputError(
+            f"holdout = {n}: {'negative' if n < 0 else f'leaves none of the {n_views} views'}; "
+            "keep at least one view in the fit (and hold out fewer)"
+        )
     picks = sorted({min(n_views - 1, max(1, round((j + 1) * n_views / (n + 1)))) for j in range(n)})
     rest = [i for i in range(n_views - 1, 0, -1) if i not in picks]
     return sorted(picks + rest[: n - len(picks)])
@@ -63,12 +66,13 @@ def check_output(out: Path, cfg: FitConfig, resume: bool, force: bool) -> None:
     """Refuse, before any work, an output that would lose something or cannot be written."""
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out}: is a file; give a folder")
-    inputs = [cfg.path.resolve(), Path(cfg.capture).resolve()]
+    inputs = [cfg.path, Path(cfg.capture), *cfg.material.texture_files().values()]
+    inputs = [Path(p).resolve() for p in inputs]
     if any(p == out.resolve() or p.is_relative_to(out.resolve()) for p in inputs):
         raise InputError(f"--out {out}: holds the fit's inputs; choose another folder")
     if resume:
         if not (out / "checkpoint.npz").exists():
-            raise InputError(f"--resume: no checkpoint in {out} (nothing to resume)")
+            raise InputError(f"--resume: no checkpoint in {out}; run without --resume")
     elif out.exists() and any(out.iterdir()) and not force:
         raise InputError(
             f"--out {out}: exists and is not empty; choose another folder, --resume a killed "
@@ -79,7 +83,9 @@ def check_output(out: Path, cfg: FitConfig, resume: bool, force: bool) -> None:
         write_text(out / ".write-test", "")
         (out / ".write-test").unlink()
     except OSError as err:
-        raise InputError(f"--out {out}: cannot write there ({err.strerror})") from None
+        raise InputError(
+            f"--out {out}: cannot write there ({err.strerror}); choose another folder"
+        ) from None
 
 
 def check_truth(capture: Capture, free: list[Free], path) -> None:
@@ -88,8 +94,48 @@ def check_truth(capture: Capture, free: list[Free], path) -> None:
         value = capture.truth.get(f.key)
         if value is not None and np.size(value) != f.size:
             raise CaptureError(
-                f"{path}: truth {f.key!r} has {np.size(value)} value(s); the parameter has {f.size}"
+                f"{path}: truth.{f.key}: has {np.size(value)} value(s) but the parameter has "
+                f"{f.size}; give {'one number' if f.size == 1 else f'{f.size} numbers'}"
             )
+
+
+@dataclasses.dataclass(frozen=True)
+class Prepared:
+    """What a fit reads before any work: the capture, the held-out views, the free parameters
+    and the problem (every input error is raised while preparing)."""
+
+    capture: Capture
+    held: list[int]
+    free: list[Free]
+    problem: Problem
+
+
+def prepare(cfg: FitConfig, holdout: int | None = None) -> Prepared:
+    """Open the capture and check everything the fit needs against it (holdout, free keys,
+    `[truth]` sizes, each phase's downscale): any problem is a one-line `InputError` before
+    any render."""
+    capture = open_capture(cfg.capture, cfg.downscale)
+    try:
+        held = held_out(len(capture.views), cfg.holdout if holdout is None else holdout)
+    except InputError as err:
+        raise InputError(
+            f"{'--holdout' if holdout is not None else f'{cfg.path}: fit.holdout'}: {err}"
+        ) from None
+    fitted = dataclasses.replace(
+        capture, views=[v for i, v in enumerate(capture.views) if i not in held]
+    )
+    try:
+        free = resolve(cfg.material, cfg.free)
+    except KeyError as err:  # a free key: name the config it came from
+        raise InputError(f"{cfg.path}: fit.free: {err.args[0]}") from None
+    check_truth(capture, free, capture.path or cfg.capture)
+    problem = Problem(fitted, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)
+    for k, phase in enumerate(cfg.phases):  # fail before any work, naming the phase
+        try:
+            problem.at(phase.downscale)
+        except CaptureError as err:
+            raise CaptureError(f"{cfg.path}: fit.phases[{k}].downscale: {err}") from None
+    return Prepared(capture, held, free, problem)
 
 
 def run_fit(
@@ -98,23 +144,15 @@ def run_fit(
     progress: Callable[[int, int, float], None] | None = None,
     resume: bool = False,
     holdout: int | None = None,
+    prepared: Prepared | None = None,
 ) -> dict:
     """Fit `cfg` into the run folder `out` (see the module's docstring); returns the summary.
     `progress(phase, step, loss)` as in `run_schedule`. On Ctrl-C the checkpoint and a partial
-    summary and report are written, then `Interrupted` is raised."""
-    capture = open_capture(cfg.capture, cfg.downscale)
-    held = held_out(len(capture.views), cfg.holdout if holdout is None else holdout)
-    fitted = dataclasses.replace(
-        capture, views=[v for i, v in enumerate(capture.views) if i not in held]
-    )
-    free = resolve(cfg.material, cfg.free)
-    check_truth(capture, free, cfg.capture)
-    problem = Problem(fitted, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)
-    for k, phase in enumerate(cfg.phases):  # fail before any work, naming the phase
-        try:
-            problem.at(phase.downscale)
-        except CaptureError as err:
-            raise CaptureError(f"{cfg.path}: fit.phases[{k}].downscale: {err}") from None
+    summary and report are written, then `Interrupted` is raised. `prepared` (from `prepare`)
+    saves opening the capture again."""
+    prepared = prepared or prepare(cfg, holdout)
+    capture, held, problem = prepared.capture, prepared.held, prepared.problem
+    free = prepared.free
     start = start_values(free)
     checkpoint = Checkpoint(out / "checkpoint.npz")
     began = time.perf_counter()

@@ -45,17 +45,19 @@ def synthesize(
     fmt: str = "exr",
     degradation: Degradation = Degradation(),
     progress: Callable[[int, int], None] | None = None,
+    replace: bool = False,
 ) -> Path:
     """Render every camera of `scene` with `material` and write a capture folder at `out`.
 
-    The folder appears whole or not at all: it is written next to `out`, then renamed.
-    `progress(view, spp_done)` is called as views render.
+    The folder appears whole or not at all: it is written next to `out`, then renamed (with
+    `replace`, over an existing folder, removed only then). `progress(view, spp_done)` is
+    called as views render.
     """
     if fmt not in FORMATS:
         raise ValueError(f"format {fmt!r}; choose one of {', '.join(FORMATS)}")
     suffix, encoding = FORMATS[fmt]
     rng = np.random.default_rng(seed)
-    with atomic_path(out, folder=True) as staging:
+    with atomic_path(out, folder=True, replace=replace) as staging:
         # Files the scene refers to move into the capture folder
         if isinstance(scene.geometry, ObjFile):
             shutil.copy(scene.geometry.path, staging / scene.geometry.path.name)
@@ -82,7 +84,7 @@ def synthesize(
         text = manifest_text(
             {"encoding": encoding}, scene_to_table(scene, staging), views, material.values()
         )
-        (staging / "capture.toml").write_text(text)
+        (staging / "capture.toml").write_text(text, encoding="utf-8")
     return out
 
 

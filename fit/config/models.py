@@ -100,7 +100,8 @@ def load_fit_config(path: str | Path) -> FitConfig:
     capture = (path.parent / doc.capture).resolve()
     if not capture.exists():
         raise ConfigError(
-            f"{path}: capture = {doc.capture!r} does not exist (relative to {path.parent})"
+            f"{path}: capture = {doc.capture!r} does not exist (relative to {path.parent}); "
+            "check the path"
         )
     material = load_material(doc.material, path)
     return FitConfig(path, capture, material, doc.fit)

@@ -153,7 +153,14 @@ class _Builder:
             raise self.error(where, "must be a texture file name")
         path = (self.file.parent / value).resolve()
         if not path.is_file():
-            raise self.error(where, f"{value!r} is not a file (paths are relative to the config)")
+            raise self.error(
+                where, f"{value!r} is not a file (paths are relative to the config); check the path"
+            )
+        from captures.images import image_problem
+
+        problem = image_problem(path)
+        if problem is not None:
+            raise self.error(where, problem)
         return {"type": "bitmap", "filename": str(path), "raw": raw}, path
 
     def param(self, spec: ParamSpec, value, where: str, design: str, traverse: str):
@@ -250,7 +257,7 @@ def build_material(
     enabled = _enabled(b, table, where)
     kind = table.pop("type", None)
     choices = [*LAYER_PLUGINS, "layered"]
-    if kind not in choices:
+    if not isinstance(kind, str) or kind not in choices:
         raise b.error(f"{where}.type", f"got {kind!r}; choose one of {', '.join(choices)}")
     if not enabled:
         return None
@@ -279,7 +286,7 @@ def build_material(
         if not _enabled(b, layer, f"{where}.{name}"):
             continue
         layer_kind = layer.pop("type", None)
-        if layer_kind not in LAYER_PLUGINS:
+        if not isinstance(layer_kind, str) or layer_kind not in LAYER_PLUGINS:
             choices = ", ".join(LAYER_PLUGINS)
             raise b.error(f"{where}.{name}.type", f"got {layer_kind!r}; choose one of {choices}")
         bsdf = b.plugin(LAYER_PLUGINS[layer_kind], layer, f"{where}.{name}", name, f"{name}.")

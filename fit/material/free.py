@@ -70,11 +70,13 @@ def _why_not(material: Material, text: str) -> str:
     owners = {name for name, _ in material.layers} | ({""} if "bump" in material.params else set())
     if key.owner not in owners:
         layers = ", ".join(name for name, _ in material.layers)
-        return f"no layer {key.owner!r} is built (built: {layers})"
+        return (
+            f"no layer {key.owner!r} is built (built: {layers}); enable the layer or drop the key"
+        )
     if key.mask and key.name == "texture":
-        return f"the {key.owner} mask has no texture to fit"
+        return f"the {key.owner} mask has no texture to fit; give it one or drop the key"
     known = ", ".join(k for k in material.params if parse_key(k).owner == key.owner)
-    return f"not a built parameter; known: {known}"
+    return f"not a built parameter; choose from {known}"
 
 
 def start_values(free: list[Free]) -> dict:

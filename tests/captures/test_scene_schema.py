@@ -12,6 +12,7 @@ import pytest
 from captures import CaptureError, parse_scene
 from captures.color import blackbody_rgb, planckian_xy
 from captures.geometry import CupShape, check_obj_has_uvs, cup_mesh, cup_profile
+from captures.images import write_image
 from captures.scene import Cup, EnvMap, ObjFile, PointLight, RectLight, Sphere
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
@@ -187,7 +188,7 @@ def test_other_lights_and_cameras(tmp_path):
 
 def test_obj_and_envmap_paths_resolve_against_the_file(tmp_path):
     (tmp_path / "m.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1\n")
-    (tmp_path / "sky.exr").write_bytes(b"")
+    write_image(tmp_path / "sky.exr", np.ones((4, 8, 3), np.float32))
     scene = parse_scene(
         scene_table(geometry="m.obj", environment={"type": "envmap", "file": "sky.exr"}),
         tmp_path / "s.toml",

@@ -55,7 +55,7 @@ def test_free_parameters_resolve_and_round_trip(problem):
     assert [f.traverse for f in free] == ["pigment.value", "roughness", "ior"]
     u = to_unconstrained(free, TRUTH)
     np.testing.assert_allclose(to_physical(free, u), truth_vector(), rtol=1e-6)
-    with pytest.raises(KeyError, match=r"not a built parameter; known: glaze\.pigment"):
+    with pytest.raises(KeyError, match=r"not a built parameter; choose from glaze\.pigment"):
         resolve(problem.material, ["glaze.shininess"])
     with pytest.raises(KeyError, match="no layer 'clay' is built"):
         resolve(problem.material, ["clay.sigma"])

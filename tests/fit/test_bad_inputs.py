@@ -1,0 +1,989 @@
+"""A corpus of bad inputs through `render`, `fit`, `synth` and `inspect`, run in-process through
+`fit.cli.main`: each fails before any render with exit status 2 and one plain line naming the
+file (or option), the field and the fix; nothing is written and every input stays byte-identical.
+A few valid but unusual inputs succeed; Ctrl-C is one line and exit status 130."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from captures.images import write_image
+from fit.cli import main
+
+ROOT = Path(__file__).resolve().parents[2]
+
+FIT = """capture = "cap"
+[material]
+type = "glaze"
+pigment = [0.3, 0.3, 0.3]
+roughness = 0.1
+ior = 1.5
+[fit]
+free = ["glaze.roughness"]
+uncertainty_spp = 4
+[[fit.phases]]
+solver = "adam"
+steps = 1
+spp = 1
+"""
+
+OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nf 1/1 2/2 3/3\n"
+SPHERE = '[scene.geometry]\ntype = "sphere"\ncenter = [0.0, 0.0, 0.0]\nradius = 1.0'
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory) -> Path:
+    """A tiny valid project: a render config (16x12), its synthetic capture (one view, with
+    [truth]), a fit config, a texture, an env map, a mesh, and a small DiLiGenT-style folder."""
+    from fit.commands.synth import synthesize
+    from fit.config import load_render_config
+
+    root = tmp_path_factory.mktemp("base")
+    text = (ROOT / "configs" / "glazed-sphere.toml").read_text()
+    text = text.replace("width = 480", "width = 16").replace("height = 360", "height = 12")
+    (root / "render.toml").write_text(text.replace("spp = 256", "spp = 2"))
+    cfg = load_render_config(root / "render.toml")
+    synthesize(cfg.scene, cfg.material, root / "cap", spp=2)
+    (root / "fit.toml").write_text(FIT)
+    write_image(root / "tex.png", np.full((4, 4, 3), 0.5, np.float32))
+    write_image(root / "sky.exr", np.full((4, 8, 3), 0.1, np.float32))
+    (root / "m.obj").write_text(OBJ)
+    dili = root / "dili"
+    dili.mkdir()
+    yy, xx = np.mgrid[0:20, 0:24]
+    disc = ((xx - 12) ** 2 + (yy - 10) ** 2 < 49).astype(np.float32)
+    write_image(dili / "mask.png", np.repeat(disc[..., None], 3, -1))
+    write_image(dili / "001.png", np.repeat(0.3 * disc[..., None] + 0.01, 3, -1))
+    write_image(dili / "002.png", np.repeat(0.2 * disc[..., None] + 0.01, 3, -1))
+    (dili / "filenames.txt").write_text("001.png\n002.png\n")
+    (dili / "light_directions.txt").write_text("0.1 0.2 0.97\n-0.3 0.1 0.95\n")
+    (dili / "light_intensities.txt").write_text("1.0 1.1 0.9\n0.8 1.0 1.2\n")
+    return root
+
+
+def edit(path: Path, old: str, new: str) -> None:
+    """Replace the first `old` in a text file (which must hold it)."""
+    text = path.read_text()
+    assert old in text, (path, old)
+    path.write_text(text.replace(old, new, 1))
+
+
+def snapshot(folder: Path) -> dict[str, str]:
+    """Every path under `folder` -> the SHA-256 of its bytes (folders: "dir")."""
+    out = {}
+    for path in sorted(folder.rglob("*")):
+        key = str(path.relative_to(folder))
+        out[key] = "dir" if path.is_dir() else hashlib.sha256(path.read_bytes()).hexdigest()
+    return out
+
+
+def run(args: list, capsys) -> tuple[int, str, str]:
+    """`layerfit ARGS` in this process: (exit status, stdout, stderr)."""
+    with pytest.raises(SystemExit) as exit_:
+        main([str(a) for a in args])
+    out = capsys.readouterr()
+    return exit_.value.code, out.out, out.err
+
+
+# Cases: (id, mutate the work folder and return the arguments, substrings of the one error line)
+Case = tuple[str, Callable[[Path], list], tuple[str, ...]]
+
+
+def render_cfg(old: str, new: str, *extra) -> Callable[[Path], list]:
+    def make(d: Path) -> list:
+        edit(d / "render.toml", old, new)
+        return ["render", d / "render.toml", "--out", d / "o.png", *extra]
+
+    return make
+
+
+def render_args(*extra, setup: Callable[[Path], None] | None = None) -> Callable[[Path], list]:
+    def make(d: Path) -> list:
+        if setup:
+            setup(d)
+        return ["render", d / "render.toml", *[a(d) if callable(a) else a for a in extra]]
+
+    return make
+
+
+def manifest(old: str, new: str, setup: Callable[[Path], None] | None = None):
+    def make(d: Path) -> list:
+        if setup:
+            setup(d)
+        edit(d / "cap" / "capture.toml", old, new)
+        return ["inspect", d / "cap", "--no-silhouette", "--sheet", d / "s.png"]
+
+    return make
+
+
+def inspect_args(*extra, setup: Callable[[Path], None] | None = None):
+    def make(d: Path) -> list:
+        if setup:
+            setup(d)
+        return ["inspect", *[a(d) if callable(a) else a for a in extra]]
+
+    return make
+
+
+def synth_args(*extra, setup: Callable[[Path], None] | None = None):
+    def make(d: Path) -> list:
+        if setup:
+            setup(d)
+        return ["synth", d / "render.toml", *[a(d) if callable(a) else a for a in extra]]
+
+    return make
+
+
+def fit_cfg(old: str, new: str, *extra):
+    def make(d: Path) -> list:
+        edit(d / "fit.toml", old, new)
+        return ["fit", d / "fit.toml", "--out", d / "run", *extra]
+
+    return make
+
+
+def fit_args(*extra, setup: Callable[[Path], None] | None = None):
+    def make(d: Path) -> list:
+        if setup:
+            setup(d)
+        return ["fit", d / "fit.toml", *[a(d) if callable(a) else a for a in extra]]
+
+    return make
+
+
+def dili(file: str, text: str | None):
+    """A DiLiGenT folder with `file` replaced by `text` (None: removed)."""
+
+    def make(d: Path) -> list:
+        path = d / "dili" / file
+        if text is None:
+            path.unlink()
+        else:
+            path.write_text(text)
+        return ["inspect", d / "dili", "--no-silhouette", "--sheet", d / "s.png"]
+
+    return make
+
+
+def write(rel: str, data: bytes | str | None = None, folder: bool = False):
+    """A setup step: write a file (or make a folder) under the work folder."""
+
+    def setup(d: Path) -> None:
+        path = d / rel
+        if folder:
+            path.mkdir(parents=True)
+        elif isinstance(data, bytes):
+            path.write_bytes(data)
+        else:
+            path.write_text(data or "")
+
+    return setup
+
+
+def out(rel: str):
+    return lambda d: d / rel
+
+
+def view_image(value: float):
+    def setup(d: Path) -> None:
+        write_image(d / "cap" / "view_00.exr", np.full((12, 16, 3), value, np.float32))
+
+    return setup
+
+
+GARBAGE = b"\x89not an image at all\xff\xfe"
+TEX = "pigment = [0.1, 0.22, 0.55]"
+ENV = "environment = [0.05, 0.05, 0.06]"
+RD = "[render]\nspp = 2"
+
+CASES: list[Case] = [
+    # --- render configs: file-level problems
+    (
+        "config-missing",
+        lambda d: ["render", d / "nope.toml", "--out", d / "o.png"],
+        ("nope.toml", "no such file"),
+    ),
+    (
+        "config-is-folder",
+        lambda d: ["render", d / "cap", "--out", d / "o.png"],
+        ("cap", "is a folder"),
+    ),
+    (
+        "config-not-utf8",
+        lambda d: (
+            (d / "render.toml").write_bytes(b"x = '\xff\xfe'\n")
+            and ["render", d / "render.toml", "--out", d / "o.png"]
+        ),
+        ("render.toml", "not UTF-8"),
+    ),
+    ("config-bad-toml", render_cfg("[render]", "[render"), ("render.toml", "not valid TOML")),
+    ("config-unknown-top", render_cfg(RD, RD + "\n[extra]\nx = 1"), ("render.toml", "extra")),
+    (
+        "material-unknown-key",
+        render_cfg("ior = 1.52", "ior = 1.52\niorr = 2"),
+        ("render.toml", "material.iorr"),
+    ),
+    ("material-ior-bounds", render_cfg("ior = 1.52", "ior = 9.0"), ("render.toml", "ior")),
+    (
+        "material-nan",
+        render_cfg("roughness = 0.0625", "roughness = nan"),
+        ("render.toml", "roughness"),
+    ),
+    ("render-spp-zero", render_cfg(RD, "[render]\nspp = 0"), ("render.toml", "render.spp")),
+    ("camera-no-fov", render_cfg("fov_x_deg = 36.0", ""), ("render.toml", "fov_x_deg")),
+    (
+        "camera-target-origin",
+        render_cfg("target = [0.0, 0.0, 0.0]", "target = [0.0, -5.0, 1.2]"),
+        ("render.toml", "target"),
+    ),
+    (
+        "light-inf",
+        render_cfg("radiance = [200.0, 183.0, 163.0]", "radiance = [inf, 1.0, 1.0]"),
+        ("render.toml", "radiance"),
+    ),
+    (
+        "light-zero",
+        render_cfg("radiance = [200.0, 183.0, 163.0]", "radiance = [0.0, 0.0, 0.0]"),
+        ("render.toml", "lights"),
+    ),
+    (
+        "env-negative",
+        render_cfg(ENV, "environment = [-1.0, 0.05, 0.06]"),
+        ("render.toml", "environment"),
+    ),
+    (
+        "obj-missing",
+        render_cfg('geometry = "sphere"', 'geometry = "none.obj"'),
+        ("render.toml", "geometry", "none.obj"),
+    ),
+    (
+        "obj-out-of-range",
+        lambda d: (
+            (d / "m.obj").write_text(OBJ.replace("3/3", "9/3"))
+            and render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
+        ),
+        ("m.obj", "line 7", "range"),
+    ),
+    (
+        "obj-no-uvs",
+        lambda d: (
+            (d / "m.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+            and render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
+        ),
+        ("m.obj", "UVs"),
+    ),
+    (
+        "obj-garbage",
+        lambda d: (
+            (d / "m.obj").write_bytes(GARBAGE)
+            and render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
+        ),
+        ("m.obj", "no faces"),
+    ),
+    (
+        "obj-is-folder",
+        lambda d: (
+            (d / "dir.obj").mkdir() or render_cfg('geometry = "sphere"', 'geometry = "dir.obj"')(d)
+        ),
+        ("dir.obj", "folder"),
+    ),
+    (
+        "obj-bad-index",
+        lambda d: (
+            (d / "m.obj").write_text(OBJ.replace("3/3", "x/3"))
+            and render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
+        ),
+        ("m.obj", "integer"),
+    ),
+    (
+        "texture-garbage",
+        lambda d: (
+            (d / "tex.png").write_bytes(GARBAGE) and render_cfg(TEX, 'pigment = "tex.png"')(d)
+        ),
+        ("render.toml", "material.pigment", "tex.png"),
+    ),
+    (
+        "texture-folder",
+        lambda d: (d / "dir.png").mkdir() or render_cfg(TEX, 'pigment = "dir.png"')(d),
+        ("render.toml", "material.pigment"),
+    ),
+    ("texture-missing", render_cfg(TEX, 'pigment = "none.png"'), ("render.toml", "none.png")),
+    (
+        "texture-not-image-type",
+        lambda d: (d / "tex.txt").write_text("1") and render_cfg(TEX, 'pigment = "tex.txt"')(d),
+        ("render.toml", "tex.txt", "use .exr"),
+    ),
+    (
+        "envmap-garbage",
+        lambda d: (
+            (d / "sky.exr").write_bytes(GARBAGE)
+            and render_cfg(ENV, 'environment = {type = "envmap", file = "sky.exr"}')(d)
+        ),
+        ("render.toml", "scene.environment.file", "sky.exr"),
+    ),
+    (
+        "envmap-folder",
+        lambda d: (
+            (d / "dir.exr").mkdir()
+            or render_cfg(ENV, 'environment = {type = "envmap", file = "dir.exr"}')(d)
+        ),
+        ("render.toml", "scene.environment.file", "folder"),
+    ),
+    (
+        "material-not-preset",
+        render_cfg(
+            '[material]\ntype = "glaze"', 'material = "nope.toml"\n[xmaterial]\ntype = "glaze"'
+        ),
+        ("render.toml", "xmaterial"),
+    ),
+    (
+        "preset-newer-schema",
+        lambda d: (
+            (d / "p.toml").write_text('schema = 99\n[material]\ntype = "glaze"\n')
+            and ["render", d / "p.toml", "--scene", d / "render.toml", "--out", d / "o.png"]
+        ),
+        ("p.toml", "schema = 99", "upgrade"),
+    ),
+    (
+        "preset-without-scene",
+        lambda d: (
+            (d / "p.toml").write_text('schema = 1\n[material]\ntype = "glaze"\n')
+            and ["render", d / "p.toml", "--out", d / "o.png"]
+        ),
+        ("p.toml", "--scene"),
+    ),
+    (
+        "scene-file-no-scene",
+        lambda d: (
+            (d / "s.toml").write_text("x = 1\n")
+            and ["render", d / "render.toml", "--scene", d / "s.toml", "--out", d / "o.png"]
+        ),
+        ("s.toml", "[scene]"),
+    ),
+    # --- render options and outputs
+    ("render-spp-0", render_args("--spp", "0", "--out", out("o.png")), ("--spp",)),
+    ("render-spp-neg", render_args("--spp", "-1", "--out", out("o.png")), ("--spp",)),
+    ("render-seed-neg", render_args("--seed", "-3", "--out", out("o.png")), ("--seed",)),
+    ("render-seed-huge", render_args("--seed", str(2**40), "--out", out("o.png")), ("--seed",)),
+    (
+        "render-out-exists",
+        render_args("--out", out("o.png"), setup=write("o.png", "precious")),
+        ("--out", "o.png", "--force"),
+    ),
+    (
+        "render-out-exr-exists",
+        render_args("--out", out("o.png"), setup=write("o.exr", "x")),
+        ("--out", "o.exr", "--force"),
+    ),
+    (
+        "render-out-folder",
+        render_args("--out", out("o.png"), setup=write("o.png", folder=True)),
+        ("--out", "is a folder"),
+    ),
+    (
+        "render-out-is-input",
+        render_args(
+            "--out",
+            out("tex.png"),
+            "--force",
+            setup=lambda d: edit(d / "render.toml", TEX, 'pigment = "tex.png"'),
+        ),
+        ("--out", "tex.png", "input"),
+    ),
+    ("render-out-config", render_args("--out", out("render.toml")), ("--out", "render.toml")),
+    ("render-out-suffix", render_args("--out", out("o.txt")), ("--out", "o.txt", "use .png")),
+    (
+        "render-out-parent-file",
+        render_args("--out", out("f/o.png"), setup=write("f", "x")),
+        ("--out", "is a file"),
+    ),
+    ("render-unknown-option", render_args("--sp", "3"), ("--sp",)),
+    # --- synth options and outputs
+    ("synth-exists", synth_args("--out", out("cap")), ("--out", "cap", "--force")),
+    (
+        "synth-force-not-capture",
+        synth_args(
+            "--out",
+            out("other"),
+            "--force",
+            setup=lambda d: ((d / "other").mkdir(), (d / "other" / "keep.txt").write_text("x")),
+        ),
+        ("--out", "other", "capture.toml"),
+    ),
+    (
+        "synth-out-file",
+        synth_args("--out", out("f"), setup=write("f", "x")),
+        ("--out", "is a file"),
+    ),
+    ("synth-out-holds-config", synth_args("--out", lambda d: d, "--force"), ("--out", "input")),
+    (
+        "synth-out-parent-file",
+        synth_args("--out", out("f/c"), setup=write("f", "x")),
+        ("--out", "is a file"),
+    ),
+    ("synth-shot-neg", synth_args("--out", out("c"), "--shot", "-1"), ("--shot",)),
+    ("synth-read-neg", synth_args("--out", out("c"), "--read", "-0.5"), ("--read",)),
+    ("synth-ev-nan", synth_args("--out", out("c"), "--exposure-ev", "nan"), ("--exposure-ev",)),
+    ("synth-ev-inf", synth_args("--out", out("c"), "--exposure-ev", "inf"), ("--exposure-ev",)),
+    ("synth-ev-huge", synth_args("--out", out("c"), "--exposure-ev", "1e308"), ("--exposure-ev",)),
+    (
+        "synth-base-nan",
+        synth_args("--out", out("c"), "--exposure-base", "nan"),
+        ("--exposure-base",),
+    ),
+    ("synth-format", synth_args("--out", out("c"), "--format", "bmp"), ("--format", "exr")),
+    ("synth-spp-0", synth_args("--out", out("c"), "--spp", "0"), ("--spp",)),
+    ("synth-seed-neg", synth_args("--out", out("c"), "--seed", "-1"), ("--seed",)),
+    ("synth-no-out", synth_args(), ("--out",)),
+    # --- inspect options and outputs
+    (
+        "inspect-downscale-0",
+        inspect_args(out("cap"), "--downscale", "0", "--sheet", out("s.png")),
+        ("--downscale",),
+    ),
+    ("inspect-downscale-neg", inspect_args(out("cap"), "--downscale", "-2"), ("--downscale",)),
+    (
+        "inspect-sheet-manifest",
+        inspect_args(out("cap"), "--sheet", out("cap/capture.toml")),
+        ("--sheet", "capture.toml", "capture folder"),
+    ),
+    (
+        "inspect-sheet-image",
+        inspect_args(out("cap"), "--sheet", out("cap/view_00.png"), "--force"),
+        ("--sheet", "capture folder"),
+    ),
+    (
+        "inspect-sheet-exists",
+        inspect_args(out("cap"), "--sheet", out("s.png"), setup=write("s.png", "precious")),
+        ("--sheet", "s.png", "--force"),
+    ),
+    (
+        "inspect-sheet-folder",
+        inspect_args(out("cap"), "--sheet", out("s.png"), setup=write("s.png", folder=True)),
+        ("--sheet", "is a folder"),
+    ),
+    (
+        "inspect-sheet-suffix",
+        inspect_args(out("cap"), "--sheet", out("s.txt")),
+        ("--sheet", "s.txt", ".png"),
+    ),
+    (
+        "inspect-sheet-parent-file",
+        inspect_args(out("cap"), "--sheet", out("f/s.png"), setup=write("f", "x")),
+        ("--sheet", "is a file"),
+    ),
+    (
+        "capture-is-image",
+        inspect_args(out("cap/view_00.exr"), "--sheet", out("s.png")),
+        ("view_00.exr", "not a capture"),
+    ),
+    (
+        "capture-missing",
+        inspect_args(out("nope"), "--sheet", out("s.png")),
+        ("nope", "no such capture"),
+    ),
+    (
+        "capture-empty-folder",
+        inspect_args(out("empty"), "--sheet", out("s.png"), setup=write("empty", folder=True)),
+        ("empty", "capture.toml"),
+    ),
+    # --- capture manifests
+    (
+        "manifest-no-views",
+        lambda d: (
+            (d / "cap" / "capture.toml").write_text(
+                (d / "cap" / "capture.toml").read_text().split("[[views]]")[0]
+            )
+            and ["inspect", d / "cap", "--sheet", d / "s.png"]
+        ),
+        ("capture.toml", "views", "[[views]]"),
+    ),
+    (
+        "manifest-unknown-key",
+        manifest('encoding = "linear"', 'encoding = "linear"\nfoo = 1'),
+        ("capture.toml", "capture.foo"),
+    ),
+    (
+        "manifest-encoding",
+        manifest('encoding = "linear"', 'encoding = "log"'),
+        ("capture.toml", "capture.encoding"),
+    ),
+    (
+        "manifest-downscale-0",
+        manifest('encoding = "linear"', 'encoding = "linear"\ndownscale = 0'),
+        ("capture.toml", "capture.downscale"),
+    ),
+    (
+        "manifest-white-balance",
+        manifest('encoding = "linear"', 'encoding = "linear"\nwhite_balance = "camera"'),
+        ("capture.toml", "white_balance"),
+    ),
+    (
+        "manifest-ev-huge",
+        manifest("exposure_ev = 0.0", "exposure_ev = 5000.0"),
+        ("capture.toml", "views[0].exposure_ev"),
+    ),
+    (
+        "manifest-ev-nan",
+        manifest("exposure_ev = 0.0", "exposure_ev = nan"),
+        ("capture.toml", "views[0].exposure_ev"),
+    ),
+    (
+        "manifest-gain-zero",
+        manifest("exposure_ev = 0.0", "gain = 0.0"),
+        ("capture.toml", "views[0].gain"),
+    ),
+    (
+        "manifest-gain-tiny",
+        manifest("exposure_ev = 0.0", "gain = 1e-300"),
+        ("capture.toml", "views[0].gain"),
+    ),
+    (
+        "manifest-gain-and-ev",
+        manifest("exposure_ev = 0.0", "exposure_ev = 0.0\ngain = 1.0"),
+        ("capture.toml", "views[0].gain"),
+    ),
+    (
+        "manifest-image-missing",
+        manifest('image = "view_00.exr"', 'image = "none.exr"'),
+        ("capture.toml", "views[0].image", "none.exr"),
+    ),
+    (
+        "manifest-image-outside",
+        manifest('image = "view_00.exr"', 'image = "../sky.exr"'),
+        ("capture.toml", "views[0].image", "outside"),
+    ),
+    (
+        "manifest-image-garbage",
+        manifest('image = "view_00.exr"', 'image = "g.exr"', setup=write("cap/g.exr", GARBAGE)),
+        ("g.exr", "not an image"),
+    ),
+    (
+        "manifest-image-folder",
+        manifest(
+            'image = "view_00.exr"', 'image = "dir.exr"', setup=write("cap/dir.exr", folder=True)
+        ),
+        ("dir.exr",),
+    ),
+    (
+        "manifest-image-65504",
+        manifest("exposure_ev = 0.0", "exposure_ev = 0.0", setup=view_image(65504.0)),
+        ("capture.toml", "views[0].image", "saturated"),
+    ),
+    (
+        "manifest-image-black",
+        manifest("exposure_ev = 0.0", "exposure_ev = 0.0", setup=view_image(0.0)),
+        ("capture.toml", "views[0].image", "no valid pixel"),
+    ),
+    (
+        "manifest-mask-size",
+        manifest(
+            'image = "view_00.exr"',
+            'image = "view_00.exr"\nmask = "m.png"',
+            setup=lambda d: write_image(d / "cap" / "m.png", np.ones((3, 3, 3))),
+        ),
+        ("capture.toml", "views[0].mask"),
+    ),
+    (
+        "manifest-camera-size",
+        manifest("width = 16", "width = 17"),
+        ("capture.toml", "views[0].camera"),
+    ),
+    (
+        "manifest-scene-cameras",
+        manifest("max_depth = 8", "max_depth = 8\ncameras = []"),
+        ("capture.toml", "scene.cameras"),
+    ),
+    (
+        "manifest-camera-away",
+        manifest("target = [0.0, 0.0, 0.0]", "target = [0.0, -9.0, 1.2]"),
+        ("capture.toml", "views[0].camera", "does not see"),
+    ),
+    (
+        "manifest-not-utf8",
+        lambda d: (
+            (d / "cap" / "capture.toml").write_bytes(b"\xff\xfe")
+            and ["inspect", d / "cap", "--sheet", d / "s.png"]
+        ),
+        ("capture.toml", "UTF-8"),
+    ),
+    (
+        "manifest-is-folder",
+        lambda d: (
+            ((d / "cap" / "capture.toml").unlink(), (d / "cap" / "capture.toml").mkdir())
+            and ["inspect", d / "cap", "--sheet", d / "s.png"]
+        ),
+        ("capture.toml", "folder"),
+    ),
+    (
+        "truth-nan-in-list",
+        manifest("[0.1, 0.22, 0.55]", "[0.1, nan, 0.55]"),
+        ("capture.toml", "truth.glaze.pigment[1]", "finite"),
+    ),
+    (
+        "truth-inf",
+        manifest('"glaze.ior" = 1.52', '"glaze.ior" = inf'),
+        ("capture.toml", "truth.glaze.ior", "finite"),
+    ),
+    (
+        "truth-text",
+        manifest('"glaze.ior" = 1.52', '"glaze.ior" = "high"'),
+        ("capture.toml", "truth.glaze.ior"),
+    ),
+    (
+        "obj-outside-capture",
+        manifest(SPHERE, '[scene.geometry]\ntype = "obj"\nfile = "../m.obj"'),
+        ("capture.toml", "scene.geometry", "outside the capture folder"),
+    ),
+    (
+        "envmap-outside-capture",
+        manifest(
+            'type = "constant"\nradiance = [0.05, 0.05, 0.06]',
+            'type = "envmap"\nfile = "../sky.exr"',
+        ),
+        ("capture.toml", "scene.environment.file", "outside the capture folder"),
+    ),
+    (
+        "obj-out-of-range-capture",
+        manifest(
+            SPHERE,
+            '[scene.geometry]\ntype = "obj"\nfile = "m.obj"',
+            setup=write("cap/m.obj", OBJ.replace("2/2", "-7/2")),
+        ),
+        ("m.obj", "out of range"),
+    ),
+    # --- DiLiGenT folders
+    (
+        "dili-no-intensities",
+        dili("light_intensities.txt", None),
+        ("light_intensities.txt", "missing"),
+    ),
+    ("dili-no-directions", dili("light_directions.txt", None), ("light_directions.txt",)),
+    (
+        "dili-non-numeric",
+        dili("light_directions.txt", "a b c\n0 0 1\n"),
+        ("light_directions.txt", "row 1", "three numbers"),
+    ),
+    (
+        "dili-two-columns",
+        dili("light_intensities.txt", "1 1\n1 1 1\n"),
+        ("light_intensities.txt", "row 1"),
+    ),
+    (
+        "dili-zero-intensity",
+        dili("light_intensities.txt", "0 0 0\n1 1 1\n"),
+        ("light_intensities.txt", "row 1", "> 0"),
+    ),
+    (
+        "dili-negative-intensity",
+        dili("light_intensities.txt", "1 1 1\n1 -1 1\n"),
+        ("light_intensities.txt", "row 2", "> 0"),
+    ),
+    (
+        "dili-zero-direction",
+        dili("light_directions.txt", "0 0 0\n0 0 1\n"),
+        ("light_directions.txt", "row 1", "zero"),
+    ),
+    (
+        "dili-nan-direction",
+        dili("light_directions.txt", "nan 0 1\n0 0 1\n"),
+        ("light_directions.txt", "row 1", "finite"),
+    ),
+    (
+        "dili-count-mismatch",
+        dili("light_directions.txt", "0 0 1\n"),
+        ("filenames.txt", "light_directions.txt", "one row per image"),
+    ),
+    (
+        "dili-empty-mask",
+        lambda d: (
+            write_image(d / "dili" / "mask.png", np.zeros((20, 24, 3)))
+            and ["inspect", d / "dili", "--sheet", d / "s.png"]
+        ),
+        ("mask.png", "fewer than 10"),
+    ),
+    # --- fit configs
+    (
+        "fit-capture-missing",
+        fit_cfg('capture = "cap"', 'capture = "none"'),
+        ("fit.toml", "capture", "does not exist"),
+    ),
+    (
+        "fit-capture-image",
+        fit_cfg('capture = "cap"', 'capture = "cap/view_00.exr"'),
+        ("view_00.exr", "not a capture"),
+    ),
+    (
+        "fit-free-unknown",
+        fit_cfg('free = ["glaze.roughness"]', 'free = ["glaze.rough"]'),
+        ("fit.toml", "fit.free", "glaze.rough"),
+    ),
+    (
+        "fit-free-disabled-layer",
+        lambda d: (
+            (d / "fit.toml").write_text(
+                FIT.replace(
+                    '[material]\ntype = "glaze"\npigment = [0.3, 0.3, 0.3]\nroughness = 0.1\n'
+                    "ior = 1.5\n",
+                    '[material]\ntype = "layered"\n[[material.layers]]\n'
+                    'name = "clay"\ntype = "oren_nayar"\n[[material.layers]]\nname = "glaze"\n'
+                    'type = "glaze"\nenabled = false\n[material.layers.mask]\nthreshold = 0.3\n',
+                )
+            )
+            and ["fit", d / "fit.toml", "--out", d / "run"]
+        ),
+        ("fit.toml", "fit.free", "'glaze'", "clay"),
+    ),
+    (
+        "fit-truth-wrong-length",
+        lambda d: (
+            edit(
+                d / "cap" / "capture.toml",
+                '"glaze.roughness" = 0.0625',
+                '"glaze.roughness" = [0.0625, 0.1]',
+            )
+            or ["fit", d / "fit.toml", "--out", d / "run"]
+        ),
+        ("capture.toml", "truth.glaze.roughness"),
+    ),
+    (
+        "fit-truth-scalar-for-rgb",
+        lambda d: (
+            edit(
+                d / "cap" / "capture.toml",
+                '"glaze.pigment" = [0.1, 0.22, 0.55]',
+                '"glaze.pigment" = 0.2',
+            )
+            or fit_cfg('free = ["glaze.roughness"]', 'free = ["glaze.pigment"]')(d)
+        ),
+        ("capture.toml", "truth.glaze.pigment", "3 numbers"),
+    ),
+    ("fit-holdout-all", fit_args("--out", out("run"), "--holdout", "1"), ("holdout",)),
+    ("fit-holdout-neg", fit_args("--out", out("run"), "--holdout", "-1"), ("--holdout",)),
+    ("fit-out-file", fit_args("--out", out("f"), setup=write("f", "x")), ("--out", "is a file")),
+    (
+        "fit-out-parent-file",
+        fit_args("--out", out("f/run"), setup=write("f", "x")),
+        ("--out", "cannot write"),
+    ),
+    (
+        "fit-out-not-empty",
+        fit_args(
+            "--out",
+            out("run"),
+            setup=lambda d: ((d / "run").mkdir(), (d / "run" / "keep.txt").write_text("x")),
+        ),
+        ("--out", "--force"),
+    ),
+    ("fit-out-holds-inputs", fit_args("--out", lambda d: d, "--force"), ("--out", "inputs")),
+    ("fit-resume-nothing", fit_args("--out", out("run"), "--resume"), ("--resume", "checkpoint")),
+    ("fit-steps-zero", fit_cfg("steps = 1", "steps = 0"), ("fit.toml", "fit.phases[0].steps")),
+    (
+        "fit-downscale-zero",
+        fit_cfg("[fit]\n", "[fit]\ndownscale = 0\n"),
+        ("fit.toml", "fit.downscale"),
+    ),
+    ("fit-loss", fit_cfg("[fit]\n", '[fit]\nloss = "l3"\n'), ("fit.toml", "fit.loss")),
+    ("fit-solver", fit_cfg('solver = "adam"', 'solver = "newton"'), ("fit.toml", "solver")),
+    ("fit-no-free", fit_cfg('free = ["glaze.roughness"]', "free = []"), ("fit.toml", "fit.free")),
+    (
+        "fit-not-utf8",
+        lambda d: (
+            (d / "fit.toml").write_bytes(b"capture = '\xff'\n")
+            and ["fit", d / "fit.toml", "--out", d / "run"]
+        ),
+        ("fit.toml", "UTF-8"),
+    ),
+    ("fit-config-folder", lambda d: ["fit", d / "cap", "--out", d / "run"], ("cap", "folder")),
+]
+
+
+@pytest.mark.parametrize("make, expected", [c[1:] for c in CASES], ids=[c[0] for c in CASES])
+def test_bad_input_is_one_line_and_changes_nothing(base, tmp_path, capsys, make, expected):
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    args = make(work)
+    before = snapshot(work)
+    code, stdout, stderr = run(args, capsys)
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert code == 2, stderr
+    assert len(lines) == 1 and lines[0].startswith("error: "), stderr
+    assert "Traceback" not in stderr and "internal error" not in stderr and not stdout.strip()
+    assert "; " in lines[0], f"no fix given: {lines[0]}"
+    for text in expected:
+        assert text in lines[0], (text, lines[0])
+    assert snapshot(work) == before  # inputs byte-identical, no partial or new file
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may write in a read-only folder")
+@pytest.mark.parametrize(
+    "make",
+    [
+        render_args("--out", out("ro/o.png")),
+        synth_args("--out", out("ro/c")),
+        inspect_args(out("cap"), "--no-silhouette", "--sheet", out("ro/s.png")),
+        fit_args("--out", out("ro/run")),
+    ],
+    ids=["render", "synth", "inspect", "fit"],
+)
+def test_read_only_output_folder(base, tmp_path, capsys, make):
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    (work / "ro").mkdir()
+    (work / "ro").chmod(0o555)
+    try:
+        code, _, stderr = run(make(work), capsys)
+    finally:
+        (work / "ro").chmod(0o755)
+    assert code == 2 and len(stderr.strip().splitlines()) == 1 and "ro" in stderr, stderr
+    assert not any((work / "ro").iterdir())
+
+
+def test_corpus_is_large_and_ids_unique():
+    assert len(CASES) >= 80 and len({c[0] for c in CASES}) == len(CASES)
+
+
+def test_help_shows_bracketed_text(capsys):
+    code, stdout, _ = run(["synth", "--help"], capsys)
+    assert code == 0 and "[truth]" in stdout and "[scene]" in stdout
+    code, stdout, _ = run(["fit", "--help"], capsys)
+    assert code == 0 and "capture, material, fit" in stdout
+
+
+# Valid but unusual inputs ------------------------------------------------------------------------
+
+
+def test_unusual_cameras_render(base, tmp_path, capsys):
+    """An orthographic camera at an odd size and a thin lens render."""
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    edit(
+        work / "render.toml",
+        "fov_x_deg = 36.0\nwidth = 16\nheight = 12",
+        'type = "orthographic"\northo_width = 3.0\nwidth = 7\nheight = 5\n\n'
+        "[[scene.cameras]]\norigin = [0.0, -5.0, 1.2]\ntarget = [0.0, 0.0, 0.0]\n"
+        "fov_x_deg = 30.0\nwidth = 9\nheight = 3\naperture_radius = 0.05",
+    )
+    code, _, stderr = run(["render", work / "render.toml", "--out", work / "o.png"], capsys)
+    assert code == 0, stderr
+    from captures.images import read_image
+
+    assert read_image(work / "o_00.exr").shape == (5, 7, 3)
+    assert read_image(work / "o_01.png").shape == (3, 9, 3)
+    # again: refused without --force, replaced with it
+    assert run(["render", work / "render.toml", "--out", work / "o.png"], capsys)[0] == 2
+    code, _, stderr = run(
+        ["render", work / "render.toml", "--out", work / "o.png", "--force", "--spp", "1"], capsys
+    )
+    assert code == 0, stderr
+
+
+def test_one_view_fit_writes_valid_json(base, tmp_path, capsys):
+    """A one-view capture fits; summary.json is strict JSON (no NaN or Infinity)."""
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    code, _, stderr = run(["fit", work / "fit.toml", "--out", work / "run"], capsys)
+    assert code == 0, stderr
+
+    def refuse(name):
+        raise ValueError(f"summary.json holds {name}")
+
+    summary = json.loads((work / "run" / "summary.json").read_text(), parse_constant=refuse)
+    assert summary["truth"]["glaze.roughness"] == 0.0625
+
+
+def test_synth_force_replaces_a_capture_and_inspect_odd_downscale(base, tmp_path, capsys):
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    (work / "cap" / "stale.txt").write_text("old")
+    args = ["synth", work / "render.toml", "--out", work / "cap", "--spp", "1", "--force"]
+    code, _, stderr = run(args, capsys)
+    assert code == 0, stderr
+    assert (work / "cap" / "capture.toml").exists() and not (work / "cap" / "stale.txt").exists()
+    assert not [p for p in work.iterdir() if p.name.startswith(".")]  # no temporary folder left
+    args = ["inspect", work / "cap", "--no-silhouette", "--downscale", "3", "--sheet"]
+    code, _, stderr = run([*args, work / "s.png"], capsys)
+    assert code == 0 and (work / "s.png").exists(), stderr
+    code, _, stderr = run(
+        ["inspect", work / "dili", "--no-silhouette", "--sheet", work / "d.png"], capsys
+    )
+    assert code == 0, stderr
+
+
+def test_a_disabled_layer_keeps_the_other_layers_keys(tmp_path):
+    """Disabling one of two layers leaves `clay.sigma` (not `oren_nayar.sigma`), and a free key
+    of the disabled layer names that layer."""
+    from fit.material import build_material, resolve
+
+    table = {
+        "type": "layered",
+        "layers": [
+            {"name": "clay", "type": "oren_nayar", "sigma": 0.2},
+            {"name": "glaze", "type": "glaze", "enabled": False, "mask": {"threshold": 0.3}},
+        ],
+    }
+    material = build_material(table, tmp_path / "m.toml")
+    assert "clay.sigma" in material.params and "oren_nayar.sigma" not in material.params
+    assert [f.key for f in resolve(material, ["clay.sigma"])] == ["clay.sigma"]
+    with pytest.raises(KeyError, match="no layer 'glaze' is built"):
+        resolve(material, ["glaze.roughness"])
+
+
+def test_manifest_downscale_is_applied(base):
+    """fit.downscale (through open_capture) and [capture] downscale both reach a manifest."""
+    from captures import open_capture
+
+    assert open_capture(base / "cap", 2).views[0].image.shape == (6, 8, 3)
+    assert open_capture(base / "cap", 2).views[0].camera.width == 8
+
+
+# Ctrl-C -------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("how", ["ctrl-c", "sigterm"])
+def test_ctrl_c_in_synth_is_one_line_and_leaves_nothing(base, tmp_path, capsys, monkeypatch, how):
+    """Ctrl-C, or SIGTERM (a kill), while the views render: nothing is left behind."""
+    import os
+    import signal
+
+    import fit.commands.synth as synth
+
+    def interrupted(*args, **kwargs):
+        if how == "sigterm":
+            os.kill(os.getpid(), signal.SIGTERM)  # the CLI's handler raises KeyboardInterrupt
+            raise AssertionError("SIGTERM did not stop the render")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(synth, "render", interrupted)
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    before = snapshot(work)
+    code, _, stderr = run(["synth", work / "render.toml", "--out", work / "c"], capsys)
+    lines = [line for line in stderr.splitlines() if line.strip().startswith(("error", "Trace"))]
+    assert code == 130 and lines == ["error: interrupted: nothing written"], stderr
+    assert snapshot(work) == before  # no capture, no hidden temporary folder
+
+
+def test_ctrl_c_in_fit_is_one_line_exit_130(base, tmp_path, capsys, monkeypatch):
+    import fit.commands.fit as fit_command
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fit_command, "run_schedule", interrupted)
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    code, _, stderr = run(["fit", work / "fit.toml", "--out", work / "run"], capsys)
+    assert code == 130 and "Traceback" not in stderr, stderr
+    assert [line for line in stderr.splitlines() if "interrupted" in line] == [
+        "interrupted: nothing to resume (stopped before the first checkpoint)"
+    ]
+    assert not [p for p in work.rglob("*") if ".partial" in p.name]
