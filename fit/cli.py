@@ -527,7 +527,9 @@ def export(
     force: Annotated[
         bool, typer.Option("--force", help="Replace an existing non-empty output folder.")
     ] = False,
-    size: Annotated[int, typer.Option(min=1, max=16384, help="Texels per side of baked images.")] = 1024,
+    size: Annotated[
+        int, typer.Option(min=1, max=16384, help="Texels per side of baked images.")
+    ] = 1024,
     variant: VariantOption = None,
 ) -> None:
     """Export a preset to Mitsuba XML, MaterialX (OpenPBR) or USD (UsdPreviewSurface); what each
