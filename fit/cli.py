@@ -283,6 +283,10 @@ def fit(
         int | None,
         typer.Option(min=0, help="Views kept out of the fit and scored (default: the config's)."),
     ] = None,
+    starts: Annotated[
+        int | None,
+        typer.Option(min=1, help="Fit from this many starts on Ray workers, keep the best."),
+    ] = None,
     variant: VariantOption = None,
 ) -> None:
     """Fit the free material parameters to a capture into a run folder (preset, summary, report);
@@ -294,12 +298,15 @@ def fit(
     out = out or Path("out") / config.stem
     try:
         cfg = load_fit_config(config)
+        if starts is not None:
+            cfg = _with_starts(cfg, starts, resume)
         from .commands.fit import check_output
 
         check_output(out, cfg, resume, force)
     except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)
+    from .batch import Cancelled
     from .commands.fit import Interrupted, run_fit
 
     with _progress() as bar:
@@ -308,11 +315,18 @@ def fit(
                 f"fit {k + 1}/{len(cfg.phases)}: {p.describe()}",
                 total=p.steps,
             )
-            for k, p in enumerate(cfg.phases)
+            for k, p in enumerate(cfg.phases if cfg.starts == 1 else ())
         ]
+        if cfg.starts > 1:
+            tasks.append(bar.add_task(f"{cfg.starts} starts on Ray workers", total=cfg.starts))
         try:
             summary = run_fit(
-                cfg, out, lambda k, n, loss: bar.update(tasks[k], completed=n), resume, holdout
+                cfg,
+                out,
+                lambda k, n, loss: bar.update(tasks[k], completed=n),
+                resume,
+                holdout,
+                lambda k, row: bar.advance(tasks[-1]),
             )
         except (InputError, KeyError) as err:  # before any work: leave no empty run folder
             if out.is_dir() and not any(out.iterdir()):
@@ -328,6 +342,10 @@ def fit(
                 highlight=False,
                 soft_wrap=True,
             )
+            raise typer.Exit(130) from None
+        except Cancelled as err:  # --starts: the Ray tasks were cancelled
+            bar.stop()
+            console.print(f"interrupted: {err}; nothing written", highlight=False)
             raise typer.Exit(130) from None
     solvers = "+".join(p.solver for p in cfg.phases)
     table = RichTable(title=f"{config}: {solvers}, {summary['wall_time_s']:.1f} s")
@@ -365,11 +383,89 @@ def fit(
                 f"[yellow]{report['solver']}:[/] {report['outcome']}: {report['message']}",
                 highlight=False,
             )
+    if "starts" in summary:
+        _print_starts(summary["starts"])
     held = [v for v in summary["views"] if v["held_out"]]
     if held:
         scores = ", ".join(f"{v['name']} {v['rmse']:.3f}" for v in held)
         console.print(f"held-out views, relative RMSE: {scores}", highlight=False)
     console.print(f"run folder: {out} (preset.toml, summary.json, report.html)", highlight=False)
+
+
+def _with_starts(cfg, starts: int, resume: bool):
+    """`cfg` with `--starts` in place of `fit.starts`."""
+    import dataclasses
+
+    if starts > 1 and resume:
+        raise InputError(f"--starts {starts}: a multi-start fit has no checkpoint to --resume")
+    return dataclasses.replace(cfg, settings=cfg.settings.model_copy(update={"starts": starts}))
+
+
+def _print_starts(rows: list[dict]) -> None:
+    """The multi-start spread: each start's start and fitted values and its common loss."""
+    from rich.table import Table as RichTable
+
+    def fmt(value):
+        return ", ".join(f"{v:.4g}" for v in np.ravel(value))
+
+    table = RichTable(title="starts (the best by the common high-spp loss)")
+    for column in ("start", "from", "fitted", "loss", "wall s"):
+        table.add_column(column)
+    for row in rows:
+        table.add_row(
+            f"{row['start']}{' (best)' if row['best'] else ''}",
+            "; ".join(f"{k} {fmt(v)}" for k, v in row["start_values"].items()),
+            "; ".join(f"{k} {fmt(v)}" for k, v in row["values"].items()),
+            f"{row['loss']:.6g}",
+            f"{row['wall_time_s']:.0f}",
+        )
+    console.print(table)
+
+
+@app.command()
+def batch(
+    spec: Annotated[Path, typer.Argument(help="Batch spec (TOML): configs x captures x seeds.")],
+    address: Annotated[
+        str | None, typer.Option(help="Join this Ray cluster (default: start one here).")
+    ] = None,
+    num_cpus: Annotated[
+        int | None, typer.Option(min=1, help="CPUs of the local Ray instance (default: all).")
+    ] = None,
+    variant: VariantOption = None,
+) -> None:
+    """Run a batch of fits as Ray tasks: one run folder per fit and an index (JSON, CSV, HTML);
+    finished fits are skipped, a failed one is reported and the others run on."""
+    from .batch import Cancelled, load_batch, run_batch
+
+    try:
+        the_batch = load_batch(spec)
+    except InputError as err:
+        raise _fail(err, 2) from None
+    _start(variant)
+    with _progress() as bar:
+        task = bar.add_task(f"{len(the_batch.jobs)} fits", total=len(the_batch.jobs))
+
+        def progress(entry: dict, done: int, total: int) -> None:
+            bar.update(task, completed=done)
+            if entry["status"] == "failed":
+                bar.console.print(
+                    f"[red]failed:[/] {entry['name']}: {entry['error']}", highlight=False
+                )
+
+        try:
+            entries = run_batch(the_batch, progress, address, num_cpus)
+        except Cancelled as err:
+            bar.stop()
+            console.print(f"interrupted: {err}", highlight=False, soft_wrap=True)
+            raise typer.Exit(130) from None
+    counts = {s: sum(e["status"] == s for e in entries) for s in ("done", "skipped", "failed")}
+    console.print(
+        f"{counts['done']} done, {counts['skipped']} already done, {counts['failed']} failed; "
+        f"index: {the_batch.out / 'index.html'}",
+        highlight=False,
+    )
+    if counts["failed"]:
+        raise typer.Exit(1)
 
 
 def main() -> None:

@@ -92,16 +92,20 @@ def check_truth(capture: Capture, free: list[Free], path) -> None:
             )
 
 
-def run_fit(
-    cfg: FitConfig,
-    out: Path,
-    progress: Callable[[int, int, float], None] | None = None,
-    resume: bool = False,
-    holdout: int | None = None,
-) -> dict:
-    """Fit `cfg` into the run folder `out` (see the module's docstring); returns the summary.
-    `progress(phase, step, loss)` as in `run_schedule`. On Ctrl-C the checkpoint and a partial
-    summary and report are written, then `Interrupted` is raised."""
+@dataclasses.dataclass
+class Setup:
+    """What a fit compares, built from its config before any render: the capture, the held-out
+    views, the problem (the fitted views) and the starting values."""
+
+    capture: Capture
+    held: list[int]
+    problem: Problem
+    start: dict
+
+
+def prepare(cfg: FitConfig, holdout: int | None = None) -> Setup:
+    """The capture, held-out views, problem and start of `cfg`; bad input fails here, before any
+    work, naming the file and key."""
     capture = open_capture(cfg.capture, cfg.downscale)
     held = held_out(len(capture.views), cfg.holdout if holdout is None else holdout)
     fitted = dataclasses.replace(
@@ -115,9 +119,34 @@ def run_fit(
             problem.at(phase.downscale)
         except CaptureError as err:
             raise CaptureError(f"{cfg.path}: fit.phases[{k}].downscale: {err}") from None
-    start = start_values(free)
-    checkpoint = Checkpoint(out / "checkpoint.npz")
+    return Setup(capture, held, problem, start_values(free))
+
+
+def run_fit(
+    cfg: FitConfig,
+    out: Path,
+    progress: Callable[[int, int, float], None] | None = None,
+    resume: bool = False,
+    holdout: int | None = None,
+    on_start: Callable[[int, dict], None] | None = None,
+) -> dict:
+    """Fit `cfg` into the run folder `out` (see the module's docstring); returns the summary.
+    `progress(phase, step, loss)` as in `run_schedule`. On Ctrl-C the checkpoint and a partial
+    summary and report are written, then `Interrupted` is raised.
+
+    With `fit.starts` > 1 the schedule runs from that many starts on Ray workers
+    (`fit.batch.starts`; `on_start(k, outcome)` as each ends, no checkpoint) and the best by a
+    common high-spp loss is kept; the summary's `starts` lists them all."""
+    setup = prepare(cfg, holdout)
+    capture, held, problem, start = setup.capture, setup.held, setup.problem, setup.start
     began = time.perf_counter()
+    if cfg.starts > 1:
+        from ..batch.starts import run_starts
+
+        result, spread = run_starts(cfg, setup, holdout, on_start)
+        wall = time.perf_counter() - began
+        return _write(cfg, out, capture, held, problem, start, result, wall, starts=spread)
+    checkpoint = Checkpoint(out / "checkpoint.npz")
     try:
         with _stop_on_ctrl_c(checkpoint):
             result = run_schedule(
@@ -164,8 +193,10 @@ def _stop_on_ctrl_c(checkpoint: Checkpoint):
         signal.signal(signal.SIGINT, previous)
 
 
-def _write(cfg, out, capture, held, problem, start, result, wall, interrupted=False) -> dict:
-    """The run folder's files from a (possibly partial) result."""
+def _write(
+    cfg, out, capture, held, problem, start, result, wall, interrupted=False, starts=None
+) -> dict:
+    """The run folder's files from a (possibly partial) result (`starts`: a multi-start's)."""
     free = problem.free
     textures = {  # fitted textures as images next to the summary and in the preset
         f.key: np.asarray(result.values[f.key], np.float32).reshape(f.shape)
@@ -174,6 +205,8 @@ def _write(cfg, out, capture, held, problem, start, result, wall, interrupted=Fa
     }
     panels = _panels(cfg, capture, held, problem, result)
     summary = _summary(cfg, capture, held, start, result, wall, panels, interrupted)
+    if starts is not None:
+        summary["starts"] = starts
     fitted_material = cfg.material.with_values(result.values)
     for key, texels in textures.items():
         write_image(out / f"{key}.exr", texels)
