@@ -124,10 +124,10 @@ def run_batch(
                 progress(entries[job.name], done, total)
     if not todo:
         return list(entries.values())
-    import ray
-
     cpus = batch.spec.cpus_per_fit
-    with connect(address, num_cpus):
+    with connect(address, num_cpus):  # before Ray's import: its settings are read then
+        import ray
+
         task = ray.remote(max_retries=0)(fit_job).options(num_cpus=cpus)
         variant = driver_variant()
         refs = {task.remote(job, cpus, variant, batch.spec.kernel_cache): job.name for job in todo}

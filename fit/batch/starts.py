@@ -97,10 +97,10 @@ def run_starts(
     """The best of `cfg.starts` fits (by the common loss) and the spread: per start its start
     and fitted values, common loss, the fit's own final loss, wall time and worker memory.
     `on_start(k, row)` as each start ends. Ctrl-C cancels the starts and raises `Cancelled`."""
-    import ray
-
     points = start_points(setup.problem, setup.start, cfg.starts, cfg.start_spread, cfg.seed)
-    with connect(address):
+    with connect(address):  # before Ray's import: its settings are read then
+        import ray
+
         task = ray.remote(max_retries=0)(fit_from)
         refs = {
             task.remote(cfg, holdout, u, driver_variant(), DEFAULT_KERNEL_CACHE): k

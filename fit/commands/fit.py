@@ -10,6 +10,8 @@ out/<config name>/
   checkpoint.npz        while running (removed at the end): `--resume` continues from it
 ```
 Every file is written atomically; an existing run folder is never overwritten without `force`.
+With `fit.starts` > 1 (`--starts`) the schedule runs from several starts on Ray workers and the
+best one's folder is written (`fit/batch/starts.py`); the summary's `starts` lists every start.
 """
 
 from __future__ import annotations
