@@ -7,6 +7,7 @@ A fit that fails is reported with its one-line error; the others run on."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import datetime
 import html
@@ -132,7 +133,8 @@ def run_batch(
         variant = driver_variant()
         refs = {task.remote(job, cpus, variant, batch.spec.kernel_cache): job.name for job in todo}
         for name in refs.values():
-            entries[name]["status"] = "running"
+            entries[name]["status"] = "submitted"
+        write_index(batch, list(entries.values()))
         pending = list(refs)
         try:
             while pending:
@@ -149,12 +151,17 @@ def run_batch(
         except KeyboardInterrupt:
             for ref in pending:
                 ray.cancel(ref)  # a KeyboardInterrupt in the fit: it saves its checkpoint
-            ray.wait(pending, num_returns=len(pending), timeout=CANCEL_GRACE_S)
+            ended, _ = ray.wait(pending, num_returns=len(pending), timeout=CANCEL_GRACE_S)
             for ref in pending:
                 entries[refs[ref]]["status"] = "cancelled"
+                if ref in ended:  # a fit may have finished meanwhile
+                    with contextlib.suppress(ray.exceptions.RayError):
+                        entry = ray.get(ref)
+                        if entry["status"] == "done":
+                            entries[refs[ref]] |= entry
             write_index(batch, list(entries.values()))
             raise Cancelled(
-                f"cancelled {len(pending)} running fit(s); the index is in {batch.out}; run the "
+                f"cancelled {len(pending)} unfinished fit(s); the index is in {batch.out}; run the "
                 "same command again to continue"
             ) from None
     return list(entries.values())
@@ -190,7 +197,7 @@ def write_index(batch: Batch, entries: list[dict]) -> list[Path]:
     return paths
 
 
-_STATUSES = ("done", "skipped", "failed", "cancelled", "running", "pending")
+_STATUSES = ("done", "skipped", "failed", "cancelled", "submitted", "pending")
 
 
 def _csv(entries: list[dict]) -> str:
@@ -230,7 +237,7 @@ def _html(batch: Batch, entries: list[dict], counts: dict, stamp: str) -> str:
         f"<title>batch {html.escape(batch.path.name)}</title><style>"
         "body{font:14px sans-serif;margin:2em}table{border-collapse:collapse}"
         "td,th{border:1px solid #ccc;padding:3px 8px;text-align:left}"
-        ".failed{background:#fdd}.cancelled,.running,.pending{color:#888}</style></head><body>"
+        ".failed{background:#fdd}.cancelled,.submitted,.pending{color:#888}</style></head><body>"
         f"<h1>batch {html.escape(str(batch.path))}</h1><p>{summary} (updated {stamp})</p>"
         f"<table><tr>{head}</tr>{''.join(rows)}</table></body></html>\n"
     )

@@ -92,15 +92,15 @@ def test_multi_start_keeps_the_best_by_a_common_loss(tmp_path, ray_cluster):
     (tmp_path / "fit.toml").write_text(
         TINY.replace(
             'free = ["glaze.pigment"]',
-            'free = ["glaze.pigment", "glaze.ior"]\nstarts = 3\nstarts_spp = 8',
+            'free = ["glaze.pigment", "glaze.ior"]\nstarts = 2\nstarts_spp = 8',
         )
     )
     cfg = load_fit_config(tmp_path / "fit.toml")
     summary = run_fit(cfg, tmp_path / "run")
     starts = summary["starts"]
-    assert [s["start"] for s in starts] == [0, 1, 2]
+    assert [s["start"] for s in starts] == [0, 1]
     assert starts[0]["start_values"]["glaze.ior"] == pytest.approx(1.52)
-    assert len({round(s["start_values"]["glaze.ior"], 4) for s in starts}) == 3
+    assert starts[1]["start_values"]["glaze.ior"] != pytest.approx(1.52, abs=1e-3)
     best = [s for s in starts if s["best"]]
     assert len(best) == 1 and best[0]["loss"] == min(s["loss"] for s in starts)
     assert summary["values"]["glaze.ior"] == pytest.approx(best[0]["values"]["glaze.ior"])
@@ -169,7 +169,7 @@ def test_four_capture_batch_resumes_after_a_kill(tmp_path):
     process.communicate()
     first = {f["name"]: f["status"] for f in json.loads(index.read_text())["fits"]}
     done_first = [name for name, status in first.items() if status == "done"]
-    assert done_first and "running" in first.values()
+    assert done_first and "submitted" in first.values()
 
     again = subprocess.run(command, check=False, cwd=ROOT, env=env, capture_output=True, text=True)
     assert again.returncode == 1, again.stderr
