@@ -1,8 +1,9 @@
 """Running a batch: each fit a Ray task in a worker process, into its run folder, and the batch
 index (JSON, CSV and an HTML page linking every report) rewritten as each fit ends.
 
-A fit whose run folder holds a `summary.json` of a finished run is skipped (so a killed or
-interrupted batch continues where it stopped; a fit killed mid-way resumes from its checkpoint).
+A fit whose run folder holds the `summary.json` of a finished run (and no checkpoint) is skipped,
+so a killed or interrupted batch continues where it stopped; a fit killed mid-way resumes from
+its checkpoint.
 A fit that fails is reported with its one-line error; the others run on."""
 
 from __future__ import annotations
@@ -51,7 +52,11 @@ CANCEL_GRACE_S = 20.0
 
 
 def finished(out: Path) -> dict | None:
-    """The summary of a finished (not interrupted) fit in run folder `out`, else None."""
+    """The summary of a finished fit in run folder `out`, else None. A fit writes its summary
+    after its other files and removes its checkpoint last: a summary beside a checkpoint, or
+    of an interrupted run, is not finished."""
+    if (out / "checkpoint.npz").exists():
+        return None
     try:
         summary = json.loads((out / "summary.json").read_text())
     except (OSError, ValueError):

@@ -219,10 +219,11 @@ def _write(
         provenance(cfg.capture, cfg.path, result.loss, std or None),
         textures,
     )
-    write_text(out / "summary.json", json.dumps(_finite(summary), indent=2, allow_nan=False))
     masks = _masks(fitted_material) | {k: t[..., 0] for k, t in textures.items()}
     title = f"{cfg.path.name}{' (interrupted)' if interrupted else ''}"
     write_report(out, summary, panels, masks, title)
+    # the summary last: beside no checkpoint, it marks a finished run folder (batches skip those)
+    write_text(out / "summary.json", json.dumps(_finite(summary), indent=2, allow_nan=False))
     return summary
 
 

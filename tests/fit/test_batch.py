@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -116,6 +117,26 @@ def test_start_points_leave_a_bound():
     iors = [problem.values(u)["glaze.ior"] for u in points]
     assert iors[0] == pytest.approx(1.01, abs=0.002)
     assert max(iors) > 1.4 and len(set(np.round(iors, 3))) == 4
+
+
+def test_a_bad_spec_is_one_line(tmp_path):
+    """Unknown keys, missing configs and run-folder clashes name the spec and the key."""
+    from captures.errors import InputError
+
+    spec = tmp_path / "batch.toml"
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    (tmp_path / "a" / "fit.toml").write_text(TINY)
+    (tmp_path / "b" / "fit.toml").write_text(TINY)
+    for text, message in (
+        ('configs = ["a/fit.toml"]\nworkers = 2\n', "batch.toml: workers: "),
+        ('configs = ["nowhere.toml"]\n', "batch.toml: configs[0]: 'nowhere.toml' does not exist"),
+        ('configs = ["a/fit.toml", "b/fit.toml"]\n', "share the run folder 'fit'"),
+    ):
+        spec.write_text(text)
+        with pytest.raises(InputError, match=re.escape(message)) as err:
+            load_batch(spec)
+        assert "\n" not in str(err.value)
 
 
 def test_a_plain_fit_does_not_import_ray():
