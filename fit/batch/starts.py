@@ -3,7 +3,7 @@
 Start 0 is the configured start. The other K-1 are a Latin hypercube of normal quantiles with
 standard deviation `fit.start_spread`, in the solvers' unconstrained space (sigmoid: logits),
 around the configured start with each component's centre first pulled inside |u| <= 2: a start at
-a bound sits on its sigmoid's flat end (ior 1.01 is u = -7.6), where a spread of a few units would
+a bound sits on its sigmoid's flat end (ior 1.01 is u = -6.9), where a spread of a few units would
 leave every start at the bound. Per-view gains start at 1 and textures as configured (not spread).
 
 Each start runs the whole schedule (and its uncertainty) in its own worker, then scores its answer
