@@ -135,6 +135,12 @@ def bench(
         Path, typer.Option(help="--only fit: the fit config whose schedules are compared.")
     ] = Path("configs/peer-sphere.toml"),
     out: Annotated[Path | None, typer.Option(help="Also write the tables (Markdown) here.")] = None,
+    ray: Annotated[
+        bool, typer.Option("--ray", help="--only fit: each schedule a Ray task (a whole node).")
+    ] = False,
+    address: Annotated[
+        str | None, typer.Option(help="--ray: join this Ray cluster (default: start one here).")
+    ] = None,
     variant: VariantOption = None,
 ) -> None:
     """Speed tables: our BSDFs vs Mitsuba's built-ins, the cup's stack vs its layers, and (with
@@ -152,7 +158,7 @@ def bench(
             if only in (None, "cup"):
                 tables.append(cup_speed_table(spp=spp, repeats=repeats, progress=bar))
             if only == "fit":
-                tables.append(fit_trade_table(fit_config, progress=bar))
+                tables.append(fit_trade_table(fit_config, None, bar, ray, address))
         except (InputError, ValueError) as err:
             raise _fail(err, 2) from None
     for table in tables:

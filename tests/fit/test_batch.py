@@ -230,3 +230,21 @@ def test_multi_start_leaves_the_ior_valley(tmp_path, ray_cluster):
     assert summary["values"]["glaze.ior"] == pytest.approx(truth, abs=0.03)
     assert summary["values"]["glaze.roughness"] == pytest.approx(0.0625, rel=0.1)
     assert min(s["loss"] for s in summary["starts"]) < alone["loss"]
+
+
+@pytest.mark.slow
+def test_bench_schedules_run_as_ray_tasks(tmp_path, ray_cluster):
+    """`layerfit bench --only fit --ray`: each schedule a task holding the whole node (2 CPUs);
+    the table is the local one's (same schedules, errors against the truth)."""
+    from fit.commands.bench import fit_trade_table
+
+    sphere_capture(tmp_path / "cap", 24, 18)
+    (tmp_path / "fit.toml").write_text(
+        TINY.replace('free = ["glaze.pigment"]', 'free = ["glaze.pigment", "glaze.ior"]')
+    )
+    names = ["default, half the steps", "Adam, then BFGS (shared seed, 64 spp)"]
+    table = fit_trade_table(tmp_path / "fit.toml", names, ray=True)
+    assert [row[0] for row in table.rows] == names and "Ray task" in table.notes[1]
+    for row in table.rows:
+        pigment_error = float(row[3].split()[0])
+        assert pigment_error < 0.05  # both schedules recover the pigment at this size
