@@ -351,6 +351,8 @@ def fit(
             raise typer.Exit(130) from None
         except Cancelled as err:  # --starts: the Ray tasks were cancelled
             bar.stop()
+            if out.is_dir() and not any(out.iterdir()):
+                out.rmdir()
             console.print(f"interrupted: {err}; nothing written", highlight=False)
             raise typer.Exit(130) from None
     solvers = "+".join(p.solver for p in cfg.phases)
