@@ -206,6 +206,12 @@ def bench(
     ] = Path("configs/peer-sphere.toml"),
     out: Annotated[Path | None, typer.Option(help="Also write the tables (Markdown) here.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace an existing --out.")] = False,
+    ray: Annotated[
+        bool, typer.Option("--ray", help="--only fit: each schedule a Ray task (a whole node).")
+    ] = False,
+    address: Annotated[
+        str | None, typer.Option(help="--ray: join this Ray cluster (default: start one here).")
+    ] = None,
     variant: VariantOption = None,
 ) -> None:
     """Speed tables: our BSDFs vs Mitsuba's built-ins, the cup's stack vs its layers, and (with
@@ -230,7 +236,7 @@ def bench(
             if only in (None, "cup"):
                 tables.append(cup_speed_table(spp=spp, repeats=repeats, progress=bar))
             if only == "fit":
-                tables.append(fit_trade_table(fit_config, progress=bar))
+                tables.append(fit_trade_table(fit_config, None, bar, ray, address))
         except (InputError, ValueError) as err:
             raise _fail(err, 2) from None
     for table in tables:
@@ -406,6 +412,10 @@ def fit(
         int | None,
         typer.Option(min=0, help="Views kept out of the fit and scored (default: the config's)."),
     ] = None,
+    starts: Annotated[
+        int | None,
+        typer.Option(min=1, help="Fit from this many starts on Ray workers, keep the best."),
+    ] = None,
     variant: VariantOption = None,
 ) -> None:
     """Fit the free material parameters to a capture into a run folder (preset, summary, report);
@@ -418,6 +428,8 @@ def fit(
     created = not out.exists()
     try:
         cfg = load_fit_config(config)
+        if starts is not None:
+            cfg = _with_starts(cfg, starts, resume)
         from .commands.fit import check_output
 
         check_output(out, cfg, resume, force)
@@ -429,6 +441,7 @@ def fit(
             out.rmdir()
 
     _start(variant)
+    from .batch import Cancelled
     from .commands.fit import Interrupted, prepare, run_fit
 
     try:
@@ -445,8 +458,10 @@ def fit(
                 f"fit {k + 1}/{len(cfg.phases)}: {p.describe()}",
                 total=p.steps,
             )
-            for k, p in enumerate(cfg.phases)
+            for k, p in enumerate(cfg.phases if cfg.starts == 1 else ())
         ]
+        if cfg.starts > 1:
+            tasks.append(bar.add_task(f"{cfg.starts} starts on Ray workers", total=cfg.starts))
         try:
             summary = run_fit(
                 cfg,
@@ -455,6 +470,7 @@ def fit(
                 resume,
                 holdout,
                 prepared,
+                lambda k, row: bar.advance(tasks[-1]),
             )
         except InputError as err:
             forget_out()
@@ -469,6 +485,12 @@ def fit(
                 if (out / "checkpoint.npz").exists()
                 else "nothing to resume (stopped before the first checkpoint)",
             )
+            raise typer.Exit(130) from None
+        except Cancelled as err:  # --starts: the Ray tasks were cancelled
+            bar.stop()
+            if out.is_dir() and not any(out.iterdir()):
+                out.rmdir()
+            _say("interrupted:", "yellow", f"{err}; nothing written")
             raise typer.Exit(130) from None
     solvers = "+".join(p.solver for p in cfg.phases)
     table = RichTable(title=escape(f"{config}: {solvers}, {summary['wall_time_s']:.1f} s"))
@@ -503,6 +525,8 @@ def fit(
     for report in summary["outcomes"]:
         if report["outcome"] in ("diverged", "failed") or report["rejected"]:
             _say(f"{report['solver']}:", "yellow", f"{report['outcome']}: {report['message']}")
+    if "starts" in summary:
+        _print_starts(summary["starts"])
     held = [v for v in summary["views"] if v["held_out"]]
     if held:
         scores = ", ".join(f"{v['name']} {v['rmse']:.3f}" for v in held)
@@ -510,6 +534,81 @@ def fit(
     console.print(
         f"run folder: {out} (preset.toml, summary.json, report.html)", highlight=False, markup=False
     )
+
+
+def _with_starts(cfg, starts: int, resume: bool):
+    """`cfg` with `--starts` in place of `fit.starts`."""
+    import dataclasses
+
+    if starts > 1 and resume:
+        raise InputError(f"--starts {starts}: a multi-start fit has no checkpoint to --resume")
+    return dataclasses.replace(cfg, settings=cfg.settings.model_copy(update={"starts": starts}))
+
+
+def _print_starts(rows: list[dict]) -> None:
+    """The multi-start spread: each start's start and fitted values and its common loss."""
+    from rich.table import Table as RichTable
+
+    def fmt(value):
+        return ", ".join(f"{v:.4g}" for v in np.ravel(value))
+
+    table = RichTable(title="starts (the best by the common high-spp loss)")
+    for column in ("start", "from", "fitted", "loss", "wall s"):
+        table.add_column(column)
+    for row in rows:
+        table.add_row(
+            f"{row['start']}{' (best)' if row['best'] else ''}",
+            "; ".join(f"{k} {fmt(v)}" for k, v in row["start_values"].items()),
+            "; ".join(f"{k} {fmt(v)}" for k, v in row["values"].items()),
+            f"{row['loss']:.6g}",
+            f"{row['wall_time_s']:.0f}",
+        )
+    console.print(table)
+
+
+@app.command()
+def batch(
+    spec: Annotated[Path, typer.Argument(help="Batch spec (TOML): configs x captures x seeds.")],
+    address: Annotated[
+        str | None, typer.Option(help="Join this Ray cluster (default: start one here).")
+    ] = None,
+    num_cpus: Annotated[
+        int | None, typer.Option(min=1, help="CPUs of the local Ray instance (default: all).")
+    ] = None,
+    variant: VariantOption = None,
+) -> None:
+    """Run a batch of fits as Ray tasks: one run folder per fit and an index (JSON, CSV, HTML);
+    finished fits are skipped, a failed one is reported and the others run on."""
+    from .batch import Cancelled, load_batch, run_batch
+
+    try:
+        the_batch = load_batch(spec)
+    except InputError as err:
+        raise _fail(err, 2) from None
+    _start(variant)
+    with _progress() as bar:
+        task = bar.add_task(f"{len(the_batch.jobs)} fits", total=len(the_batch.jobs))
+
+        def progress(entry: dict, done: int, total: int) -> None:
+            bar.update(task, completed=done)
+            if entry["status"] == "failed":
+                _say("failed:", "red", f"{entry['name']}: {entry['error']}")
+
+        try:
+            entries = run_batch(the_batch, progress, address, num_cpus)
+        except Cancelled as err:
+            bar.stop()
+            _say("interrupted:", "yellow", str(err))
+            raise typer.Exit(130) from None
+    counts = {s: sum(e["status"] == s for e in entries) for s in ("done", "skipped", "failed")}
+    console.print(
+        f"{counts['done']} done, {counts['skipped']} already done, {counts['failed']} failed; "
+        f"index: {the_batch.out / 'index.html'}",
+        highlight=False,
+        markup=False,
+    )
+    if counts["failed"]:
+        raise typer.Exit(1)
 
 
 @app.command()

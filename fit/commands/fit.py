@@ -10,6 +10,8 @@ out/<config name>/
   checkpoint.npz        while running (removed at the end): `--resume` continues from it
 ```
 Every file is written atomically; an existing run folder is never overwritten without `force`.
+With `fit.starts` > 1 (`--starts`) the schedule runs from several starts on Ray workers and the
+best one's folder is written (`fit/batch/starts.py`); the summary's `starts` lists every start.
 """
 
 from __future__ import annotations
@@ -102,12 +104,13 @@ def check_truth(capture: Capture, free: list[Free], path) -> None:
 @dataclasses.dataclass(frozen=True)
 class Prepared:
     """What a fit reads before any work: the capture, the held-out views, the free parameters
-    and the problem (every input error is raised while preparing)."""
+    the problem and the starting values (every input error is raised while preparing)."""
 
     capture: Capture
     held: list[int]
     free: list[Free]
     problem: Problem
+    start: dict
 
 
 def prepare(cfg: FitConfig, holdout: int | None = None) -> Prepared:
@@ -135,7 +138,7 @@ def prepare(cfg: FitConfig, holdout: int | None = None) -> Prepared:
             problem.at(phase.downscale)
         except CaptureError as err:
             raise CaptureError(f"{cfg.path}: fit.phases[{k}].downscale: {err}") from None
-    return Prepared(capture, held, free, problem)
+    return Prepared(capture, held, free, problem, start_values(free))
 
 
 def run_fit(
@@ -145,17 +148,27 @@ def run_fit(
     resume: bool = False,
     holdout: int | None = None,
     prepared: Prepared | None = None,
+    on_start: Callable[[int, dict], None] | None = None,
 ) -> dict:
     """Fit `cfg` into the run folder `out` (see the module's docstring); returns the summary.
     `progress(phase, step, loss)` as in `run_schedule`. On Ctrl-C the checkpoint and a partial
     summary and report are written, then `Interrupted` is raised. `prepared` (from `prepare`)
-    saves opening the capture again."""
+    saves opening the capture again.
+
+    With `fit.starts` > 1 the schedule runs from that many starts on Ray workers
+    (`fit.batch.starts`; `on_start(k, outcome)` as each ends, no checkpoint) and the best by a
+    common high-spp loss is kept; the summary's `starts` lists them all."""
     prepared = prepared or prepare(cfg, holdout)
     capture, held, problem = prepared.capture, prepared.held, prepared.problem
-    free = prepared.free
-    start = start_values(free)
-    checkpoint = Checkpoint(out / "checkpoint.npz")
+    start = prepared.start
     began = time.perf_counter()
+    if cfg.starts > 1:
+        from ..batch.starts import run_starts
+
+        result, spread = run_starts(cfg, prepared, holdout, on_start)
+        wall = time.perf_counter() - began
+        return _write(cfg, out, capture, held, problem, start, result, wall, starts=spread)
+    checkpoint = Checkpoint(out / "checkpoint.npz")
     try:
         with _stop_on_ctrl_c(checkpoint):
             result = run_schedule(
@@ -202,8 +215,10 @@ def _stop_on_ctrl_c(checkpoint: Checkpoint):
         signal.signal(signal.SIGINT, previous)
 
 
-def _write(cfg, out, capture, held, problem, start, result, wall, interrupted=False) -> dict:
-    """The run folder's files from a (possibly partial) result."""
+def _write(
+    cfg, out, capture, held, problem, start, result, wall, interrupted=False, starts=None
+) -> dict:
+    """The run folder's files from a (possibly partial) result (`starts`: a multi-start's)."""
     free = problem.free
     textures = {  # fitted textures as images next to the summary and in the preset
         f.key: np.asarray(result.values[f.key], np.float32).reshape(f.shape)
@@ -212,6 +227,8 @@ def _write(cfg, out, capture, held, problem, start, result, wall, interrupted=Fa
     }
     panels = _panels(cfg, capture, held, problem, result)
     summary = _summary(cfg, capture, held, start, result, wall, panels, interrupted)
+    if starts is not None:
+        summary["starts"] = starts
     fitted_material = cfg.material.with_values(result.values)
     for key, texels in textures.items():
         write_image(out / f"{key}.exr", texels)
@@ -222,10 +239,11 @@ def _write(cfg, out, capture, held, problem, start, result, wall, interrupted=Fa
         provenance(cfg.capture, cfg.path, result.loss, std or None),
         textures,
     )
-    write_text(out / "summary.json", json.dumps(_finite(summary), indent=2, allow_nan=False))
     masks = _masks(fitted_material) | {k: t[..., 0] for k, t in textures.items()}
     title = f"{cfg.path.name}{' (interrupted)' if interrupted else ''}"
     write_report(out, summary, panels, masks, title)
+    # the summary last: beside no checkpoint, it marks a finished run folder (batches skip those)
+    write_text(out / "summary.json", json.dumps(_finite(summary), indent=2, allow_nan=False))
     return summary
 
 

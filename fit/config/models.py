@@ -49,6 +49,13 @@ class FitSettings(StrictModel):
     """Views kept out of the fit and only scored (spread over the views, never the first)."""
     phases: list[Phase] = Field(default_factory=lambda: list(DEFAULT_SCHEDULE), min_length=1)
     """The schedule: solver phases run in turn (absent: the default schedule)."""
+    starts: PositiveInt = 1
+    """Multi-start: run the schedule from this many starts (Ray workers), keep the best."""
+    start_spread: PositiveFloat = 1.5
+    """Multi-start: standard deviation of the other starts around the configured one, in the
+    solvers' unconstrained units (sigmoid: logits)."""
+    starts_spp: PositiveInt = 256
+    """Multi-start: samples per pixel of the common loss that picks the best start."""
 
 
 class _FitFile(StrictModel):
@@ -93,15 +100,20 @@ def load_render_config(path: str | Path) -> RenderConfig:
     return RenderConfig(path, parse_scene(doc.scene, path), material, doc.render.spp)
 
 
-def load_fit_config(path: str | Path) -> FitConfig:
-    """A fit config from its file; a one-line `InputError` naming the file and key."""
+def load_fit_config(
+    path: str | Path, capture: Path | None = None, seed: int | None = None
+) -> FitConfig:
+    """A fit config from its file, its capture and seed replaced when given (a batch's); a
+    one-line `InputError` naming the file and key."""
     path = Path(path)
     doc = parse_model(_FitFile, read_toml(path), path)
-    capture = (path.parent / doc.capture).resolve()
-    if not capture.exists():
-        raise ConfigError(
-            f"{path}: capture = {doc.capture!r} does not exist (relative to {path.parent}); "
-            "check the path"
-        )
+    if capture is None:
+        capture = (path.parent / doc.capture).resolve()
+        if not capture.exists():
+            raise ConfigError(
+                f"{path}: capture = {doc.capture!r} does not exist (relative to {path.parent}); "
+                "check the path"
+            )
     material = load_material(doc.material, path)
-    return FitConfig(path, capture, material, doc.fit)
+    settings = doc.fit if seed is None else doc.fit.model_copy(update={"seed": seed})
+    return FitConfig(path, Path(capture), material, settings)

@@ -1,0 +1,88 @@
+"""Ray for batches and multi-start: joining (or starting) a cluster, and preparing a worker
+process for fits (the Mitsuba variant, Dr.Jit's threads, its kernel cache on this node).
+
+Ray is imported only here and in the modules that submit tasks, never by a plain fit."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import socket
+from collections.abc import Iterator
+
+log = logging.getLogger(__name__)
+
+#: The variant the driver chose: workers select the same one.
+VARIANT_ENV = "LAYERFIT_VARIANT"
+#: Dr.Jit's kernel cache on each node ({host}: its host name). LLVM kernels are compiled for the
+#: node's CPU, so nodes that share a home folder must not share one cache folder.
+DEFAULT_KERNEL_CACHE = "~/.drjit/{host}"
+_prepared: set[tuple] = set()
+
+
+class Cancelled(Exception):
+    """Ctrl-C cancelled the Ray tasks (a batch's fits, a fit's starts); the message says what."""
+
+
+@contextlib.contextmanager
+def connect(address: str | None = None, num_cpus: int | None = None) -> Iterator[None]:
+    """Ray for the duration of the block: an existing connection (a caller's, a test's) is used
+    as it is; else `address` joins a running cluster, or a local instance starts on this
+    machine with `num_cpus` CPUs (default: all), no dashboard, and the workers' output left in
+    Ray's session logs. Shut down at the end when this block started it."""
+    os.environ.setdefault("RAY_DISABLE_USAGE_STATS", "1")
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    address = address or os.environ.get("RAY_ADDRESS") or None
+    if address is None:  # a local instance: token auth on, said explicitly (else Ray warns);
+        os.environ.setdefault("RAY_AUTH_MODE", "token")  # read when Ray is first imported
+    import ray
+
+    if ray.is_initialized():
+        yield
+        return
+    ray.init(
+        address=address,
+        num_cpus=None if address else num_cpus,
+        include_dashboard=False,
+        log_to_driver=False,
+        logging_level=logging.WARNING,
+        configure_logging=True,
+    )
+    try:
+        yield
+    finally:
+        ray.shutdown()
+
+
+def prepare_worker(cpus: int, variant: str | None, kernel_cache: str | None = None) -> str:
+    """In a worker, before its first fit: Dr.Jit's kernel cache folder on this node (only while
+    Dr.Jit is not loaded yet in this process), the Mitsuba variant with our plugins, and Dr.Jit's
+    thread count = the task's CPUs. Returns the variant."""
+    from ..variant import select_variant
+
+    if (cpus, variant) in _prepared:
+        return variant
+    if kernel_cache and "DRJIT_CACHE_DIR" not in os.environ:
+        folder = os.path.expanduser(kernel_cache.format(host=socket.gethostname()))
+        os.makedirs(folder, exist_ok=True)
+        os.environ["DRJIT_CACHE_DIR"] = folder
+    chosen = select_variant(variant)
+    import drjit as dr
+
+    import materials
+
+    materials.register()
+    dr.set_thread_count(cpus)
+    _prepared.add((cpus, variant))
+    return chosen
+
+
+def driver_variant() -> str | None:
+    """The variant the driver process uses (the workers follow it)."""
+    try:
+        import mitsuba as mi
+
+        return mi.variant()
+    except (ImportError, AttributeError):
+        return os.environ.get(VARIANT_ENV)

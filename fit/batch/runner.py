@@ -1,0 +1,260 @@
+"""Running a batch: each fit a Ray task in a worker process, into its run folder, and the batch
+index (JSON, CSV and an HTML page linking every report) rewritten as each fit ends.
+
+A fit whose run folder holds the `summary.json` of a finished run (and no checkpoint) is skipped,
+so a killed or interrupted batch continues where it stopped; a fit killed mid-way resumes from
+its checkpoint.
+A fit that fails is reported with its one-line error; the others run on."""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import datetime
+import html
+import io
+import json
+import logging
+import math
+import os
+import resource
+import socket
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from captures.files import write_text
+
+from .cluster import Cancelled, connect, driver_variant, prepare_worker
+from .spec import Batch, Job
+
+log = logging.getLogger(__name__)
+
+#: The index's columns (CSV order; the JSON has them and the scalar fitted values).
+COLUMNS = (
+    "name",
+    "status",
+    "config",
+    "capture",
+    "seed",
+    "loss",
+    "max_abs_error",
+    "wall_time_s",
+    "max_rss_mb",
+    "host",
+    "error",
+    "run_folder",
+)
+#: Seconds cancelled fits get to save their checkpoint after Ctrl-C before Ray shuts down.
+CANCEL_GRACE_S = 20.0
+
+
+def finished(out: Path) -> dict | None:
+    """The summary of a finished fit in run folder `out`, else None. A fit writes its summary
+    after its other files and removes its checkpoint last: a summary beside a checkpoint, or
+    of an interrupted run, is not finished."""
+    if (out / "checkpoint.npz").exists():
+        return None
+    try:
+        summary = json.loads((out / "summary.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return None if summary.get("interrupted", True) else summary
+
+
+def fit_job(job: Job, cpus: int, variant: str | None, kernel_cache: str) -> dict:
+    """In a worker: run one fit into its run folder (resuming from its checkpoint when one is
+    there); its index entry, with the one-line error when it failed."""
+    began = time.perf_counter()
+    entry = {"host": socket.gethostname(), "pid": os.getpid()}
+    try:
+        prepare_worker(cpus, variant, kernel_cache)
+        from ..commands.fit import check_output, run_fit
+        from ..config import load_fit_config
+
+        cfg = load_fit_config(job.config, job.capture, job.seed)
+        resume = (job.out / "checkpoint.npz").exists()
+        check_output(job.out, cfg, resume, force=True)  # a failed run's leftovers are replaced
+        summary = run_fit(cfg, job.out, resume=resume)
+        entry |= summary_entry(summary) | {"status": "done"}
+    except Exception as err:
+        message = str(err).strip().splitlines()[0] if str(err).strip() else ""
+        entry |= {"status": "failed", "error": f"{type(err).__name__}: {message}"}
+        log.exception("fit %s failed", job.name)
+    entry["wall_time_s"] = entry.get("wall_time_s") or time.perf_counter() - began
+    entry["max_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return entry
+
+
+def summary_entry(summary: dict) -> dict:
+    """What the index keeps of a fit's summary: loss, largest error vs the truth, wall time and
+    the fitted values of at most 3 components (with the best start's spread when multi-start)."""
+    errors = [abs(e) for v in summary.get("error", {}).values() for e in np.ravel(v)]
+    entry = {
+        "loss": summary.get("loss"),
+        "max_abs_error": max(errors) if errors else None,
+        "wall_time_s": summary.get("wall_time_s"),
+        "values": {k: v for k, v in summary.get("values", {}).items() if np.size(v) <= 3},
+    }
+    if "starts" in summary:
+        entry["starts"] = [{"loss": s["loss"], "best": s["best"]} for s in summary["starts"]]
+    return entry
+
+
+def run_batch(
+    batch: Batch,
+    progress: Callable[[dict, int, int], None] | None = None,
+    address: str | None = None,
+    num_cpus: int | None = None,
+) -> list[dict]:
+    """Run `batch`'s fits not finished yet on Ray (joining `address`, else a local instance of
+    `num_cpus` CPUs); returns the index entries (also written to the batch folder).
+    `progress(entry, done, total)` as each fit ends (skipped ones first). Ctrl-C cancels the
+    running fits (each saves its checkpoint when it can), writes the index and raises
+    `Cancelled`."""
+    entries = {job.name: _base(batch, job) for job in batch.jobs}
+    todo = []
+    for job in batch.jobs:
+        summary = finished(job.out)
+        if summary is None:
+            todo.append(job)
+        else:
+            entries[job.name] |= summary_entry(summary) | {"status": "skipped"}
+    total, done = len(batch.jobs), len(batch.jobs) - len(todo)
+    write_index(batch, list(entries.values()))
+    if progress:
+        for job in batch.jobs:
+            if entries[job.name]["status"] == "skipped":
+                progress(entries[job.name], done, total)
+    if not todo:
+        return list(entries.values())
+    cpus = batch.spec.cpus_per_fit
+    with connect(address, num_cpus):  # before Ray's import: its settings are read then
+        import ray
+
+        task = ray.remote(max_retries=0)(fit_job).options(num_cpus=cpus)
+        variant = driver_variant()
+        refs = {task.remote(job, cpus, variant, batch.spec.kernel_cache): job.name for job in todo}
+        for name in refs.values():
+            entries[name]["status"] = "submitted"
+        write_index(batch, list(entries.values()))
+        pending = list(refs)
+        try:
+            while pending:
+                ready, pending = ray.wait(pending, num_returns=1)
+                name = refs[ready[0]]
+                try:
+                    entries[name] |= ray.get(ready[0])
+                except ray.exceptions.RayError as err:  # the worker died (crash, memory)
+                    entries[name] |= {"status": "failed", "error": _one_line(err)}
+                done += 1
+                write_index(batch, list(entries.values()))
+                if progress:
+                    progress(entries[name], done, total)
+        except KeyboardInterrupt:
+            for ref in pending:
+                ray.cancel(ref)  # a KeyboardInterrupt in the fit: it saves its checkpoint
+            ended, _ = ray.wait(pending, num_returns=len(pending), timeout=CANCEL_GRACE_S)
+            for ref in pending:
+                entries[refs[ref]]["status"] = "cancelled"
+                if ref in ended:  # a fit may have finished meanwhile
+                    with contextlib.suppress(ray.exceptions.RayError):
+                        entry = ray.get(ref)
+                        if entry["status"] == "done":
+                            entries[refs[ref]] |= entry
+            write_index(batch, list(entries.values()))
+            raise Cancelled(
+                f"cancelled {len(pending)} unfinished fit(s); the index is in {batch.out}; run the "
+                "same command again to continue"
+            ) from None
+    return list(entries.values())
+
+
+def _base(batch: Batch, job: Job) -> dict:
+    return {
+        "name": job.name,
+        "status": "pending",
+        "config": str(job.config),
+        "capture": str(job.capture) if job.capture else "",
+        "seed": job.seed,
+        "run_folder": os.path.relpath(job.out, batch.out),
+    }
+
+
+def _one_line(err: Exception) -> str:
+    text = str(getattr(err, "cause", None) or err).strip()
+    return f"{type(err).__name__}: {text.splitlines()[0] if text else ''}"
+
+
+def write_index(batch: Batch, entries: list[dict]) -> list[Path]:
+    """`index.json`, `index.csv` and `index.html` in the batch folder, each written atomically."""
+    out = batch.out
+    stamp = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
+    counts = {s: sum(e["status"] == s for e in entries) for s in _STATUSES}
+    doc = {"spec": str(batch.path), "updated": stamp, "counts": counts, "fits": entries}
+    paths = [
+        write_text(out / "index.json", json.dumps(_finite(doc), indent=2, allow_nan=False)),
+        write_text(out / "index.csv", _csv(entries)),
+        write_text(out / "index.html", _html(batch, entries, counts, stamp)),
+    ]
+    return paths
+
+
+_STATUSES = ("done", "skipped", "failed", "cancelled", "submitted", "pending")
+
+
+def _csv(entries: list[dict]) -> str:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, COLUMNS, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    for entry in entries:
+        writer.writerow({k: _cell(entry.get(k)) for k in COLUMNS})
+    return buffer.getvalue()
+
+
+def _cell(value) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return f"{value:.6g}" if math.isfinite(value) else ""
+    return str(value)
+
+
+def _html(batch: Batch, entries: list[dict], counts: dict, stamp: str) -> str:
+    head = "".join(f"<th>{c}</th>" for c in COLUMNS if c != "run_folder") + "<th>report</th>"
+    rows = []
+    for entry in entries:
+        cells = "".join(
+            f"<td>{html.escape(_cell(entry.get(c)))}</td>" for c in COLUMNS if c != "run_folder"
+        )
+        report = Path(entry["run_folder"]) / "report.html"
+        link = (
+            f'<a href="{html.escape(report.as_posix())}">report</a>'
+            if (batch.out / report).exists()
+            else "-"
+        )
+        rows.append(f'<tr class="{entry["status"]}">{cells}<td>{link}</td></tr>')
+    summary = ", ".join(f"{n} {s}" for s, n in counts.items() if n)
+    return (
+        "<!doctype html><html><head><meta charset='utf-8'>"
+        f"<title>batch {html.escape(batch.path.name)}</title><style>"
+        "body{font:14px sans-serif;margin:2em}table{border-collapse:collapse}"
+        "td,th{border:1px solid #ccc;padding:3px 8px;text-align:left}"
+        ".failed{background:#fdd}.cancelled,.submitted,.pending{color:#888}</style></head><body>"
+        f"<h1>batch {html.escape(str(batch.path))}</h1><p>{summary} (updated {stamp})</p>"
+        f"<table><tr>{head}</tr>{''.join(rows)}</table></body></html>\n"
+    )
+
+
+def _finite(value):
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, np.generic):
+        return value.item()
+    return value

@@ -1,0 +1,91 @@
+"""The batch spec (TOML): which fits to run (captures x fit configs x seeds), where and on how
+many CPUs each; loaded into a list of `Job`s, one run folder each."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from pydantic import Field
+
+from captures.model import ExistingPath, NonNegativeInt, PositiveInt, StrictModel, parse_model
+
+from ..errors import ConfigError
+from ..material import read_toml
+from .cluster import DEFAULT_KERNEL_CACHE
+
+
+class BatchSpec(StrictModel):
+    configs: list[ExistingPath] = Field(min_length=1)
+    """Fit configs (TOML), relative to the spec; each fit starts from its config's material."""
+    captures: list[ExistingPath] = Field(default_factory=list)
+    """Captures that replace each config's own (empty: every config fits its own capture)."""
+    seeds: list[NonNegativeInt] = Field(default_factory=list)
+    """Seeds that replace each config's `fit.seed` (empty: the config's seed)."""
+    out: Path = Path("out/batch")
+    """The batch folder, relative to the spec: one run folder per fit and the index."""
+    cpus_per_fit: PositiveInt = 1
+    """CPUs (Ray resources and Dr.Jit threads) each fit holds."""
+    kernel_cache: str = DEFAULT_KERNEL_CACHE
+    """Dr.Jit's kernel cache folder on each node ({host}: the node's host name; LLVM kernels are
+    compiled for the node's CPU, so nodes sharing a home folder must not share one)."""
+
+
+@dataclass(frozen=True)
+class Job:
+    """One fit of a batch: its name (the run folder's), config, capture (None: the config's own),
+    seed (None: the config's) and run folder."""
+
+    name: str
+    config: Path
+    capture: Path | None
+    seed: int | None
+    out: Path
+
+
+@dataclass(frozen=True)
+class Batch:
+    """A loaded spec: its file, settings and jobs."""
+
+    path: Path
+    spec: BatchSpec
+    jobs: list[Job]
+
+    @property
+    def out(self) -> Path:
+        return (self.path.parent / self.spec.out).resolve()
+
+
+def capture_name(path: Path) -> str:
+    """A capture's short name: its folder's (a manifest or a peer `scene.json` names its folder)."""
+    return path.parent.name if path.is_file() else path.name
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "-", text).strip("-") or "x"
+
+
+def load_batch(path: str | Path) -> Batch:
+    """A batch spec from its file; a one-line `InputError` naming the file and key."""
+    path = Path(path)
+    spec = parse_model(BatchSpec, read_toml(path), path)
+    out = (path.parent / spec.out).resolve()
+    jobs, names = [], {}
+    for config in spec.configs:
+        for capture in spec.captures or [None]:
+            for seed in spec.seeds or [None]:
+                parts = [config.stem]
+                if capture is not None:
+                    parts.append(capture_name(capture))
+                if seed is not None:
+                    parts.append(f"seed{seed}")
+                name = _slug("__".join(parts))
+                if name in names:
+                    raise ConfigError(
+                        f"{path}: two fits would share the run folder {name!r} ({names[name]} "
+                        f"and {config}); give configs and captures distinct names"
+                    )
+                names[name] = config
+                jobs.append(Job(name, config, capture, seed, out / name))
+    return Batch(path, spec, jobs)
