@@ -18,6 +18,9 @@ class AdamOptions(Options):
     """Learning rate (in the solver's unconstrained space)."""
     average: float = Field(0.0, ge=0.0, le=1.0)
     """Fraction of the last iterates averaged into the result (Polyak; 0: the last iterate)."""
+    profile_gains: bool = True
+    """Free gains solved in closed form between steps (variable projection) rather than as
+    Adam's coordinates; over the averaged tail, from the least-squares sums of its steps."""
 
 
 class Adam(AbstractSolver):
@@ -45,18 +48,22 @@ class Adam(AbstractSolver):
         offer=None,
     ) -> Result:
         render = problem.render_fn("reverse", spp, downscale)
-        residual = residuals(problem, render, downscale, independent_gains=True)
+        profile = options.profile_gains and problem.gains
+        residual = residuals(
+            problem, render, downscale, independent_gains=True, profile_gains=profile
+        )
+        n = problem.n_material
 
         def loss(u, seed):
-            r = residual(u, seed)
-            return 0.5 * jnp.dot(r, r), None
+            r, sums = residual(u, seed) if profile else (residual(u, seed), None)
+            return 0.5 * jnp.dot(r, r), sums
 
         solver = optx.OptaxMinimiser(optax.adam(options.lr), rtol=0.0, atol=0.0)
         u = jnp.asarray(u0, jnp.float32)
         f_struct = jax.ShapeDtypeStruct((), jnp.float32)
         state = solver.init(loss, u, jnp.int32(seed), {}, f_struct, None, frozenset())
-        step = jax.jit(lambda u, s, st: solver.step(loss, u, s, {}, st, frozenset())[:2])
-        history, tail, rejected, first = [], [], 0, 0
+        step = jax.jit(lambda u, s, st: solver.step(loss, u, s, {}, st, frozenset()))
+        history, tail, rejected, first, gain_sums = [], [], 0, 0, None
         if resume is not None:  # the state offered at step `first`
             leaves, treedef = jax.tree.flatten(state)
             saved = [
@@ -66,9 +73,21 @@ class Adam(AbstractSolver):
             u, first = jnp.asarray(resume["u"], jnp.float32), int(resume["step"])
             history, rejected = list(resume["history"]), int(resume["rejected"])
             tail = list(np.asarray(resume["tail"]))
+            gain_sums = resume.get("gain_sums")
         first_averaged = steps - round(options.average * steps)
         for i in range(first, steps):
-            new_u, new_state = step(u, jnp.int32(seed * 100003 + i + 1), state)
+            new_u, new_state, sums = step(u, jnp.int32(seed * 100003 + i + 1), state)
+            if profile and np.all(np.isfinite(sums := np.asarray(sums, np.float64))):
+                # the gains from this step's least-squares sums (num, den): no lag behind the
+                # material; over the averaged tail from the sums of its steps so far (one step's
+                # ratio is biased high by its denominator's variance, a few % at 8-16 spp)
+                if i >= first_averaged:
+                    gain_sums = sums if gain_sums is None else gain_sums + sums
+                    sums = gain_sums
+                num, den = sums
+                ok = (num > 0) & (den > 0)
+                log_gains = np.where(ok, np.log(np.where(ok, num, 1) / np.where(ok, den, 1)), 0)
+                new_u = new_u.at[n:].set(log_gains.astype(np.float32))
             value = float(new_state.f)  # the loss at `u`, before this update
             if np.all(np.isfinite(np.asarray(new_u))) and np.isfinite(value):
                 u, state = new_u, new_state
@@ -89,6 +108,7 @@ class Adam(AbstractSolver):
                         "history": history,
                         "tail": tail,
                         "rejected": rejected,
+                        **({"gain_sums": gain_sums} if gain_sums is not None else {}),
                     }
                 )
         if tail:

@@ -135,7 +135,13 @@ def shape_loss(d, loss: str, scale: float):
 GAIN_SEED_OFFSET = 0xB10C5
 
 
-def residuals(problem: Problem, render, downscale: int = 1, independent_gains: bool = False):
+def residuals(
+    problem: Problem,
+    render,
+    downscale: int = 1,
+    independent_gains: bool = False,
+    profile_gains: bool = False,
+):
     """`residual(u, seed)`: the weighted, loss-shaped differences of `render(x, seed)` (a JAX
     function of the physical values) from the photos.
 
@@ -145,14 +151,34 @@ def residuals(problem: Problem, render, downscale: int = 1, independent_gains: b
     `independent_gains` the derivative's second factor is an independent render I' (same value of
     the residual, derivative sum(w (g I - T) I'), zero at the unbiased T / E[I]); it costs one
     more primal render per evaluation, for solvers whose fixed point is a zero of an expected
-    gradient (Adam with fresh seeds, LM with a decorrelated Jacobian)."""
+    gradient (Adam with fresh seeds, LM with a decorrelated Jacobian).
+
+    With `profile_gains` the gains in `u` are held fixed (no derivative) and each evaluation also
+    returns the sums of their weighted least-squares solution per view and channel,
+    `(sum(w T I'), sum(w I I'))` with the independent render I': `residual(u, seed)` returns
+    `(residual, (num, den))`. A solver sets the gains to `num / den` between steps (variable
+    projection: the material then descends the loss with the gains at their best, and gains and
+    colours cannot trade along a shallow valley); summing them over steps before dividing keeps
+    the ratio's own noise bias small.
+    """
     target, sqrt_w = (jnp.asarray(a) for a in problem.target(downscale))
     n, loss, scale = problem.n_material, problem.loss, problem.robust_scale()
     independent = independent_gains and problem.gains
+    profile = profile_gains and problem.gains
+    if profile:
+        segments, n_segments = _gain_segments(problem, downscale)
+        weight = sqrt_w * sqrt_w
 
     def residual(u, seed):
         x = to_physical(problem.free, u[:n], jnp)
         image = render(x, seed)
+        if profile:
+            other = jax.lax.stop_gradient(render(jax.lax.stop_gradient(x), seed + GAIN_SEED_OFFSET))
+            fixed = jax.lax.stop_gradient(image)
+            num = jax.ops.segment_sum(weight * target * other, segments, n_segments)[1:]
+            den = jax.ops.segment_sum(weight * fixed * other, segments, n_segments)[1:]
+            gain = jax.lax.stop_gradient(problem.gain_multipliers(u[n:], downscale))
+            return sqrt_w * shape_loss(image * gain - target, loss, scale), (num, den)
         if problem.gains:
             gain = problem.gain_multipliers(u[n:], downscale)
             if independent:
@@ -166,3 +192,14 @@ def residuals(problem: Problem, render, downscale: int = 1, independent_gains: b
         return sqrt_w * shape_loss(image - target, loss, scale)
 
     return residual
+
+
+def _gain_segments(problem: Problem, downscale: int) -> tuple[jnp.ndarray, int]:
+    """Each flattened element's gain: 0 for the first view (fixed), 1 + 3 i + channel for the
+    i-th view with a gain."""
+    views = problem.at(downscale).views
+    parts = [np.zeros(views[0].image.size, np.int32)]
+    for i, view in enumerate(problem.gain_views):
+        size = views[view].image.size
+        parts.append(1 + 3 * i + np.arange(size, dtype=np.int32) % 3)
+    return jnp.asarray(np.concatenate(parts)), 1 + 3 * len(problem.gain_views)
