@@ -480,6 +480,11 @@ def plot_long_run(run: LongRun, out: Path) -> Path:
     twin = bottom.twinx()
     twin.plot(run.jit_steps, run.jit[:, 0] / (1 << 20), color="C2", label="Dr.Jit in use")
     twin.set_ylabel("Dr.Jit MiB")
+    # flat should look flat: at least 16 MiB (RSS) and 1 MiB (Dr.Jit) of axis
+    for axis, values, span in ((bottom, run.rss, 16), (twin, run.jit[:, 0], 1)):
+        low, high = np.nanmin(values) / (1 << 20), np.nanmax(values) / (1 << 20)
+        if high - low < span:
+            axis.set_ylim(max(0.0, (low + high - span) / 2), (low + high + span) / 2)
     bottom.set_xlabel("Adam step")
     bottom.legend(loc="upper left")
     twin.legend(loc="lower right")

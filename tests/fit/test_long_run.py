@@ -14,8 +14,8 @@ ROOT = Path(__file__).resolve().parents[2]
 #: RSS +0.1 MiB, Dr.Jit memory +0, live JIT variables +0, JAX traces +0, kernels built +0.
 #: Leaks they caught (demonstrated, not committed): each step's AD-enabled render kept alive
 #: (+2000 live variables, +0.8 MiB Dr.Jit memory; RSS only +0.4 MiB at this size), a host-side
-#: leak of 100 KiB per step (+10 MiB RSS), the Adam step re-jitted every iteration (+1 trace per
-#: step, 60x slower).
+#: leak of 100 KiB per step (+9.8 MiB RSS), the Adam step re-jitted every iteration (+100 JAX
+#: traces, about 50x slower per step, RSS +4.5 MiB in one run and -2 MiB in another).
 MAX_RSS_GROWTH = 4 << 20
 MAX_JIT_GROWTH = 64 << 10
 MAX_LIVE_GROWTH = 50
