@@ -22,8 +22,8 @@ def problem():
 
 #: Not alpha from its lower bound: there the gradient has the right sign in expectation but
 #: Monte Carlo noise swamps it on this problem (measured at alpha 0.011, 8 x 256 spp: dL/dalpha
-#: -348 +- 160; 40 Adam steps at 4, 16 or 64 spp, and 300 at 4 spp, moved inward for 2 of 5
-#: seeds, README "Bounds").
+#: -348 +- 160; Adam moved it inward for at most 2 of 5 seeds at 4 spp, 40 or 300 steps, and
+#: 0 of 3 at 64 spp: README "Bounds").
 CASES = [("roughness", "upper"), ("ior", "lower"), ("ior", "upper")]
 
 
