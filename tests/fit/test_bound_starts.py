@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from fit.commands.bench import sphere_problem
+from fit.material import resolve
 from fit.solvers import solve
-from materials.params import GLAZE
+from materials.params import EMITTER_PARAMS, GLAZE
 
 ROOT = Path(__file__).resolve().parents[2]
 TRUTH = {"glaze.pigment": [0.1, 0.22, 0.55], "glaze.roughness": 0.0625, "glaze.ior": 1.52}
@@ -45,3 +46,19 @@ def test_fit_from_a_bound_moves_inward(problem, key, bound):
     end = result.values[f"glaze.{key}"]
     side = getattr(spec, bound)
     assert abs(end - side) > 2 * abs(began - side), (began, end)
+
+
+def test_emitter_scales_at_their_bounds(problem):
+    """The declared emitter scales at each bound: the render and its Jacobian are finite, and the
+    image is linear in them (every path ends on one emitter), so with the image's own seed
+    `sum_k s_k dI/ds_k` equals the image (Euler), a Jacobian that is neither zero nor off."""
+    from fit.render import Renderer
+
+    free = resolve(problem.material, [f"{name}.scale" for name in EMITTER_PARAMS])
+    renderer = Renderer(problem.capture, problem.material, free)
+    for level in ("lower", "upper"):
+        scales = np.array([getattr(s, level) for s in EMITTER_PARAMS.values()], np.float32)
+        image, jac = renderer.jacobian(scales, 5, 4)
+        assert np.all(np.isfinite(image)) and np.all(np.isfinite(jac)), level
+        assert np.all(np.abs(jac).max(axis=0) > 0), f"{level}: a scale does not act"
+        np.testing.assert_allclose(jac @ scales, image, rtol=1e-3, atol=1e-4 * image.max())
