@@ -1,4 +1,5 @@
-"""A fit started next to a bound (where the transform puts a start at the bound) moves inward."""
+"""Near the bounds on a render: a fit started next to a bound (where the transform puts a start
+at the bound) moves inward; emitter scales at their bounds render and differentiate."""
 
 from __future__ import annotations
 
