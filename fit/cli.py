@@ -199,11 +199,13 @@ def bench(
         int, typer.Option(min=1, help="Timed renders per case (median reported).")
     ] = 7,
     only: Annotated[
-        str | None, typer.Option(help="Run one table: bsdf, cup or fit (not run by default).")
+        str | None,
+        typer.Option(help="Run one table: bsdf, cup, fit or long (fit, long: not run by default)."),
     ] = None,
     fit_config: Annotated[
         Path, typer.Option(help="--only fit: the fit config whose schedules are compared.")
     ] = Path("configs/peer-sphere.toml"),
+    steps: Annotated[int, typer.Option(help="--only long: Adam steps of the long run.")] = 1000,
     out: Annotated[Path | None, typer.Option(help="Also write the tables (Markdown) here.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace an existing --out.")] = False,
     ray: Annotated[
@@ -214,19 +216,29 @@ def bench(
     ] = None,
     variant: VariantOption = None,
 ) -> None:
-    """Speed tables: our BSDFs vs Mitsuba's built-ins, the cup's stack vs its layers, and (with
-    --only fit, minutes) fit schedules' wall time vs accuracy."""
+    """Speed tables: our BSDFs vs Mitsuba's built-ins, the cup's stack vs its layers, (with
+    --only fit, minutes) fit schedules' wall time vs accuracy, and (with --only long) time and
+    memory per step over a long Adam run, plotted to a PNG beside --out (or bench-long.png)."""
     from captures.files import check_output, write_text
 
-    if only not in (None, "bsdf", "cup", "fit"):
-        raise _fail(f"--only {only!r}: choose bsdf, cup or fit", 2)
+    if only not in (None, "bsdf", "cup", "fit", "long"):
+        raise _fail(f"--only {only!r}: choose bsdf, cup, fit or long", 2)
+    if steps < 2:
+        raise _fail(f"--steps {steps}: give at least 2", 2)
     try:
         if out is not None:
             check_output(out, "--out", force=force, inputs=[fit_config])
     except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)
-    from .commands.bench import bsdf_speed_table, cup_speed_table, fit_trade_table
+    from .commands.bench import (
+        bsdf_speed_table,
+        cup_speed_table,
+        fit_trade_table,
+        long_run,
+        long_run_table,
+        plot_long_run,
+    )
 
     tables = []
     with _progress() as bar:
@@ -237,6 +249,11 @@ def bench(
                 tables.append(cup_speed_table(spp=spp, repeats=repeats, progress=bar))
             if only == "fit":
                 tables.append(fit_trade_table(fit_config, None, bar, ray, address))
+            if only == "long":
+                run = long_run(steps=steps, progress=bar)
+                tables.append(long_run_table(run))
+                plot = out.with_suffix(".png") if out else Path("bench-long.png")
+                console.print(f"wrote {plot_long_run(run, plot)}", markup=False)
         except (InputError, ValueError) as err:
             raise _fail(err, 2) from None
     for table in tables:
