@@ -650,7 +650,7 @@ def export(
 ) -> None:
     """Export a preset to Mitsuba XML, MaterialX (OpenPBR) or USD (UsdPreviewSurface); what each
     target holds exactly, approximates or loses: README, "Export"."""
-    from .export import TARGETS, check_output
+    from .export import TARGETS, check_output, inputs_of
     from .material import load_preset
 
     name = preset.parent.name if preset.stem == "preset" else preset.stem
@@ -658,8 +658,8 @@ def export(
     try:
         if to not in TARGETS:
             raise InputError(f"--to {to!r}: choose one of {', '.join(TARGETS)}")
-        check_output(out, force)
         loaded = load_preset(preset)
+        check_output(out, force, inputs_of(loaded))
     except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)

@@ -236,8 +236,11 @@ class IntOption:
     def check(self, value, where: str) -> int:
         """`value` as an int, or a `ValueError` naming `where` and the range."""
         number = isinstance(value, int | float) and not isinstance(value, bool)
-        if not number or value != value or int(min(max(value, -1e18), 1e18)) != value or not (
-            self.lower <= value <= self.upper
+        if (
+            not number
+            or value != value
+            or int(min(max(value, -1e18), 1e18)) != value
+            or not (self.lower <= value <= self.upper)
         ):
             raise ValueError(
                 f"{where}: {self.key} = {value!r}; use an integer in [{self.lower}, {self.upper}]"

@@ -13,6 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from captures.files import atomic_path
+from captures.files import check_output as check_path
 
 from ..errors import ConfigError
 from ..material import Preset, load_preset
@@ -24,19 +25,28 @@ TARGETS = ("mitsuba", "materialx", "usd")
 BAKE_SIZE = 1024
 
 
-def check_output(out: Path, force: bool) -> None:
-    """Refuse an output that is a file, or an existing non-empty folder without `force`."""
+def check_output(out: Path, force: bool, inputs=()) -> None:
+    """Refuse an output that is a file, one of the export's `inputs` (the preset, its textures)
+    or a folder holding one, a place that cannot be written, or an existing non-empty folder
+    without `force`."""
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{out}: is a file; give --out a folder (new or empty)")
+    check_path(out, "--out", force=True, inputs=inputs, folder=True)
     if out.is_dir() and any(out.iterdir()) and not force:
         raise ConfigError(f"{out}: exists and is not empty; pass --force to replace it")
 
 
+def inputs_of(preset: Preset) -> list[Path]:
+    """The files an export of `preset` reads: the preset file and its textures."""
+    files = list(preset.material.texture_files().values())
+    return files + ([preset.path] if preset.path is not None else [])
+
+
 @contextlib.contextmanager
-def output_folder(out: Path, force: bool) -> Iterator[Path]:
+def output_folder(out: Path, force: bool, inputs=()) -> Iterator[Path]:
     """A temporary folder to write into that becomes `out` on success (the previous `out`
     removed only then); on any error nothing is left behind and `out` is as it was."""
-    check_output(out, force)
+    check_output(out, force, inputs)
     backup = None
     if out.is_dir():
         if any(out.iterdir()):
@@ -78,11 +88,10 @@ def export(
         raise ConfigError(f"--portable: applies to --to mitsuba only (got --to {to})")
     if size < 1:
         raise ConfigError(f"--size {size}: must be a positive number of texels")
-    check_output(out, force)
     if not isinstance(preset, Preset):
         preset = load_preset(preset)
     material = preset.material
-    with output_folder(out, force) as folder:
+    with output_folder(out, force, inputs_of(preset)) as folder:
         if to == "mitsuba" and not portable:
             path = mitsuba.export_native(material, folder)
         elif to == "mitsuba":
@@ -95,4 +104,4 @@ def export(
     return out / name
 
 
-__all__ = ["BAKE_SIZE", "TARGETS", "check_output", "export", "output_folder"]
+__all__ = ["BAKE_SIZE", "TARGETS", "check_output", "export", "inputs_of", "output_folder"]

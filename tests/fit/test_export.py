@@ -296,6 +296,18 @@ def test_cli_exports_and_refuses_to_overwrite(tmp_path):
     assert leftovers(tmp_path) == []
 
 
+def test_cli_never_replaces_the_folder_holding_its_input(tmp_path):
+    """`--out` the preset's own folder, even with --force: refused before any work (replacing it
+    would delete the preset and its run folder)."""
+    preset = cup_preset(tmp_path)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
+    result = cli("export", preset, "--to", "usd", "--out", tmp_path, "--force")
+    assert result.exit_code == 2
+    (line,) = [x for x in result.output.splitlines() if x.strip()]
+    assert "is an input of this command" in line
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before
+
+
 @pytest.mark.parametrize("case", ["schema", "texture", "file", "target"])
 def test_cli_bad_input_is_one_line_and_writes_nothing(tmp_path, case):
     preset = cup_preset(tmp_path)
