@@ -198,21 +198,26 @@ def run_fit(
 
 @contextlib.contextmanager
 def _stop_on_ctrl_c(checkpoint: Checkpoint):
-    """Ctrl-C asks the schedule to stop at its next step (never inside a render, where JAX would
-    wrap the interrupt); a second Ctrl-C stops at once."""
+    """Ctrl-C (or SIGTERM) asks the schedule to stop at its next step (never inside a render,
+    where JAX would wrap the interrupt); a second one stops at once."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    signals = (signal.SIGINT, signal.SIGTERM)
+    previous = {s: signal.getsignal(s) for s in signals}
 
     def request(signum, frame):
         checkpoint.stop = True
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        for s in signals:
+            signal.signal(s, signal.default_int_handler)
 
-    previous = signal.signal(signal.SIGINT, request)
+    for s in signals:
+        signal.signal(s, request)
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 def _write(

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from cli_run import run_cli
 
 from fit.commands.synth import synthesize
@@ -160,12 +161,14 @@ def test_kill_and_resume_ends_where_an_uninterrupted_run_does(tmp_path):
     assert not (tmp_path / "killed" / "checkpoint.npz").exists()
 
 
-def test_ctrl_c_saves_a_checkpoint_and_a_partial_report(tmp_path):
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_saves_a_checkpoint_and_a_partial_report(tmp_path, stop):
+    """Ctrl-C, or SIGTERM (a scheduler's stop), while the fit steps."""
     small_capture(tmp_path / "cap", spp=64)
     (tmp_path / "fit.toml").write_text(RESUMABLE.replace("steps = 60", "steps = 2000"))
     process = _fit_process(tmp_path / "fit.toml", tmp_path / "run")
     _wait_for_step(tmp_path / "run" / "checkpoint.npz", 5, process)
-    process.send_signal(signal.SIGINT)
+    process.send_signal(stop)
     _, stderr = process.communicate(timeout=240)
     assert process.returncode == 130, stderr
     lines = [line for line in stderr.splitlines() if "--resume" in line]
