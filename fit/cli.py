@@ -505,8 +505,7 @@ def fit(
             raise typer.Exit(130) from None
         except Cancelled as err:  # --starts: the Ray tasks were cancelled
             bar.stop()
-            if out.is_dir() and not any(out.iterdir()):
-                out.rmdir()
+            forget_out()
             _say("interrupted:", "yellow", f"{err}; nothing written")
             raise typer.Exit(130) from None
     solvers = "+".join(p.solver for p in cfg.phases)
@@ -526,7 +525,7 @@ def fit(
     std = summary["std"] or {}
     for key, value in summary["values"].items():
         table.add_row(
-            key,
+            escape(key),
             fmt(summary["start"].get(key)),
             fmt(value),
             fmt(std.get(key)),
@@ -577,7 +576,7 @@ def _print_starts(rows: list[dict]) -> None:
             f"{row['start']}{' (best)' if row['best'] else ''}",
             "; ".join(f"{k} {fmt(v)}" for k, v in row["start_values"].items()),
             "; ".join(f"{k} {fmt(v)}" for k, v in row["values"].items()),
-            f"{row['loss']:.6g}",
+            f"{row['loss']:.6g}" if row["loss"] is not None else escape(f"failed: {row['error']}"),
             f"{row['wall_time_s']:.0f}",
         )
     console.print(table)

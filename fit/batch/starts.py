@@ -93,10 +93,12 @@ def run_starts(
     holdout: int | None,
     on_start: Callable[[int, dict], None] | None = None,
     address: str | None = None,
-) -> tuple[Result, list[dict]]:
-    """The best of `cfg.starts` fits (by the common loss) and the spread: per start its start
-    and fitted values, common loss, the fit's own final loss, wall time and worker memory.
-    `on_start(k, row)` as each start ends. Ctrl-C cancels the starts and raises `Cancelled`."""
+) -> tuple[Result, list[dict], dict]:
+    """The best of `cfg.starts` fits (by the common loss), the spread (per start its start and
+    fitted values, common loss, the fit's own final loss, wall time and worker memory, or its
+    one-line error) and the best one's start values. `on_start(k, row)` as each start ends. A
+    failed start is reported and the others go on; Ctrl-C cancels the starts and raises
+    `Cancelled`."""
     points = start_points(prepared.problem, prepared.start, cfg.starts, cfg.start_spread, cfg.seed)
     with connect(address):  # before Ray's import: its settings are read then
         import ray
@@ -107,24 +109,55 @@ def run_starts(
             for k, u in enumerate(points)
         }
         outcomes: dict[int, dict] = {}
+        failed: dict[int, dict] = {}
         pending = list(refs)
         try:
             while pending:
                 ready, pending = ray.wait(pending, num_returns=1)
                 k = refs[ready[0]]
-                outcomes[k] = ray.get(ready[0])
+                try:
+                    outcomes[k] = ray.get(ready[0])
+                    row = _row(k, outcomes[k])
+                except ray.exceptions.RayError as err:  # a worker died or the fit raised
+                    message = (str(err).strip().splitlines() or [type(err).__name__])[-1]
+                    failed[k] = _failed_row(k, prepared.problem.values(points[k]), message)
+                    row = failed[k]
                 if on_start:
-                    on_start(k, _row(k, outcomes[k]))
+                    on_start(k, row)
         except KeyboardInterrupt:
             for ref in pending:
                 ray.cancel(ref, force=True)
             raise Cancelled(f"cancelled {len(pending)} of {cfg.starts} starts") from None
-    rows = [_row(k, outcomes[k]) for k in range(cfg.starts)]
-    losses = [r["loss"] if math.isfinite(r["loss"]) else math.inf for r in rows]
-    best = int(np.argmin(losses))
+    if not outcomes:
+        raise RuntimeError(
+            f"every one of the {cfg.starts} starts failed; the first: "
+            + next(iter(failed.values()))["error"]
+        )
+    rows = [_row(k, outcomes[k]) if k in outcomes else failed[k] for k in range(cfg.starts)]
+
+    def loss(k: int) -> float:
+        value = rows[k]["loss"]
+        return value if value is not None and math.isfinite(value) else math.inf
+
+    best = min(outcomes, key=loss)
     for row in rows:
         row["best"] = row["start"] == best
-    return outcomes[best]["result"], rows
+    return outcomes[best]["result"], rows, outcomes[best]["start"]
+
+
+def _failed_row(k: int, start: dict, error: str) -> dict:
+    """A start whose fit failed: its start values and the error, no result."""
+    return {
+        "start": k,
+        "start_values": _small(start),
+        "values": {},
+        "loss": None,
+        "fit_loss": None,
+        "outcomes": ["failed"],
+        "wall_time_s": 0.0,
+        "max_rss_mb": None,
+        "error": error,
+    }
 
 
 def _row(k: int, outcome: dict) -> dict:

@@ -73,6 +73,11 @@ def check_output(out: Path, cfg: FitConfig, resume: bool, force: bool) -> None:
     if any(p == out.resolve() or p.is_relative_to(out.resolve()) for p in inputs):
         raise InputError(f"--out {out}: holds the fit's inputs; choose another folder")
     if resume:
+        if cfg.starts > 1:
+            raise InputError(
+                f"{cfg.path}: fit.starts = {cfg.starts}: a multi-start fit has no checkpoint to "
+                "--resume; run it again with --force"
+            )
         if not (out / "checkpoint.npz").exists():
             raise InputError(f"--resume: no checkpoint in {out}; run without --resume")
     elif out.exists() and any(out.iterdir()) and not force:
@@ -165,9 +170,11 @@ def run_fit(
     if cfg.starts > 1:
         from ..batch.starts import run_starts
 
-        result, spread = run_starts(cfg, prepared, holdout, on_start)
+        result, spread, start = run_starts(cfg, prepared, holdout, on_start)
         wall = time.perf_counter() - began
-        return _write(cfg, out, capture, held, problem, start, result, wall, starts=spread)
+        summary = _write(cfg, out, capture, held, problem, start, result, wall, starts=spread)
+        Checkpoint(out / "checkpoint.npz").remove()  # an earlier single-start run's, if any
+        return summary
     checkpoint = Checkpoint(out / "checkpoint.npz")
     try:
         with _stop_on_ctrl_c(checkpoint):

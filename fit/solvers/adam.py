@@ -48,7 +48,8 @@ class Adam(AbstractSolver):
         offer=None,
     ) -> Result:
         render = problem.render_fn("reverse", spp, downscale)
-        profile = options.profile_gains and problem.gains
+        # the closed form is the L2 loss's; robust losses keep the gains as Adam's coordinates
+        profile = options.profile_gains and problem.gains and problem.loss == "l2"
         residual = residuals(
             problem, render, downscale, independent_gains=True, profile_gains=profile
         )
