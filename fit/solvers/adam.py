@@ -109,7 +109,9 @@ class Adam(AbstractSolver):
                         "u": u,
                         "leaves": jax.tree.leaves(state),
                         "history": history,
+                        "n_history": len(history),
                         "tail": tail,
+                        "n_tail": len(tail),
                         "rejected": rejected,
                         **({"gain_sums": gain_sums} if gain_sums is not None else {}),
                     }

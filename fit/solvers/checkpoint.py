@@ -49,12 +49,16 @@ class Checkpoint:
         if self.latest is None:
             return
         meta, arrays = {}, {}
-        for key, value in self.latest.items():
+        state = dict(self.latest)
+        for key in ("history", "tail"):  # live lists, possibly appended to since the offer
+            if f"n_{key}" in state:
+                state[key] = state[key][: state.pop(f"n_{key}")]
+        for key, value in state.items():
             if key == "leaves":
                 arrays |= {f"leaf_{i}": np.asarray(v) for i, v in enumerate(value)}
                 meta["n_leaves"] = len(value)
             elif key == "tail":  # the averaged iterates so far: (n, size of u)
-                size = np.size(self.latest["u"])
+                size = np.size(state["u"])
                 arrays[key] = np.asarray(value, np.float32).reshape(len(value), size)
             elif hasattr(value, "shape"):  # numpy or JAX arrays
                 arrays[key] = np.asarray(value)
