@@ -612,6 +612,9 @@ def batch(
 
         try:
             entries = run_batch(the_batch, progress, address, num_cpus)
+        except InputError as err:
+            bar.stop()
+            raise _fail(err, 2) from None
         except Cancelled as err:
             bar.stop()
             _say("interrupted:", "yellow", str(err))

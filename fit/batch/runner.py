@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from captures.errors import InputError
 from captures.files import write_text
 
 from .cluster import Cancelled, connect, driver_variant, prepare_worker
@@ -134,6 +135,12 @@ def run_batch(
     with connect(address, num_cpus):  # before Ray's import: its settings are read then
         import ray
 
+        largest = max((n["Resources"].get("CPU", 0) for n in ray.nodes() if n["Alive"]), default=0)
+        if cpus > largest:  # Ray would wait for such a node forever
+            raise InputError(
+                f"{batch.path}: cpus_per_fit = {cpus}: no node of this Ray cluster has that many "
+                f"CPUs (the largest: {largest:g}); lower it or give --num-cpus"
+            )
         task = ray.remote(max_retries=0)(fit_job).options(num_cpus=cpus)
         variant = driver_variant()
         refs = {task.remote(job, cpus, variant, batch.spec.kernel_cache): job.name for job in todo}

@@ -88,6 +88,23 @@ def test_batch_isolates_a_broken_capture_writes_its_index_and_resumes(tmp_path, 
     assert json.loads((runs / "tiny__good" / "summary.json").read_text()) == summary
 
 
+def test_batch_asking_more_cpus_than_any_node_fails_in_one_line(tmp_path, ray_cluster):
+    """cpus_per_fit above every node's CPUs: Ray would wait forever; refused, exit 2."""
+    from fit.cli import app
+
+    sphere_capture(tmp_path / "good", 8, 6, spp=4)
+    (tmp_path / "cap").mkdir()
+    (tmp_path / "tiny.toml").write_text(TINY)
+    spec = tmp_path / "batch.toml"
+    spec.write_text(
+        'configs = ["tiny.toml"]\ncaptures = ["good"]\nout = "runs"\ncpus_per_fit = 3\n'
+    )
+    result = CliRunner().invoke(app, ["batch", str(spec)])
+    assert result.exit_code == 2, result.output
+    (line,) = [x for x in result.output.splitlines() if "error:" in x]
+    assert "cpus_per_fit = 3" in line and "largest: 2" in line
+
+
 def test_multi_start_keeps_the_best_by_a_common_loss(tmp_path, ray_cluster):
     sphere_capture(tmp_path / "cap", 20, 15)
     (tmp_path / "fit.toml").write_text(
