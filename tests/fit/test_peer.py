@@ -89,10 +89,12 @@ def fit_peer(config: str):
     return run_schedule(Problem(capture, cfg.material, free), start, cfg.phases), capture.truth
 
 
+@pytest.mark.slow
 def test_peer_sphere_is_recovered(shared_data):
     """configs/peer-sphere.toml with the default schedule (exact Fresnel, as Cycles): issue 5's
     targets are alpha within 2 %, ior within 0.02, pigment within 0.01 per channel (measured:
-    +0.2 %, +0.0009, 0.0003 in about 70 s on 2 cores)."""
+    +0.2 %, +0.0009, 0.0003 in about 70 s on 2 cores; 104 s in a loaded default run, which
+    pushed that run past 10 minutes: slow target, beside the torus)."""
     result, truth = fit_peer("peer-sphere.toml")
     values = result.values
     np.testing.assert_allclose(values["glaze.pigment"], truth["glaze.pigment"], atol=0.01)
