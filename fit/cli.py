@@ -667,7 +667,8 @@ def export(
     _start(variant)
     from .export import export as export_preset
 
-    with _progress() as bar:
+    what = f"nothing written ({out} as it was)"
+    with _interruptible(lambda: what), _progress() as bar:
         task = bar.add_task(
             f"{to}: bake {size}x{size}" if to != "mitsuba" or portable else to, total=None
         )

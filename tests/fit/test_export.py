@@ -346,3 +346,19 @@ def test_an_interrupted_export_leaves_nothing(tmp_path):
         export(preset, "materialx", out, force=True, size=16, progress=interrupt)
     assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
     assert leftovers(tmp_path) == []
+
+
+def test_cli_ctrl_c_is_one_line(tmp_path, monkeypatch):
+    """Ctrl-C while exporting: one `interrupted:` line, exit 130, nothing written."""
+    import fit.export
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fit.export, "export", interrupted)
+    preset = sphere_preset(tmp_path)
+    result = cli("export", preset, "--to", "usd", "--out", tmp_path / "x")
+    assert result.exit_code == 130
+    (line,) = [x for x in result.output.splitlines() if "interrupted" in x]
+    assert "interrupted: nothing written" in line and "Traceback" not in result.output
+    assert not (tmp_path / "x").exists()
