@@ -225,9 +225,12 @@ def bench(
         raise _fail(f"--only {only!r}: choose bsdf, cup, fit or long", 2)
     if steps < 2:
         raise _fail(f"--steps {steps}: give at least 2", 2)
+    plot = (out.with_suffix(".png") if out else Path("bench-long.png")) if only == "long" else None
     try:
         if out is not None:
             check_output(out, "--out", force=force, inputs=[fit_config])
+        if plot is not None:
+            check_output(plot, "--out (its plot)", force=force, inputs=[fit_config])
     except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)
@@ -252,7 +255,6 @@ def bench(
             if only == "long":
                 run = long_run(steps=steps, progress=bar)
                 tables.append(long_run_table(run))
-                plot = out.with_suffix(".png") if out else Path("bench-long.png")
                 console.print(f"wrote {plot_long_run(run, plot)}", markup=False)
         except (InputError, ValueError) as err:
             raise _fail(err, 2) from None
