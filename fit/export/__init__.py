@@ -6,14 +6,13 @@ shared baking, `mapping` the fitted lobe maps. Import after the Mitsuba variant 
 from __future__ import annotations
 
 import contextlib
-import os
 import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from captures.files import atomic_path
 from captures.files import check_output as check_path
+from captures.files import replace_folder
 
 from ..errors import ConfigError
 from ..material import Preset, load_preset
@@ -47,23 +46,14 @@ def output_folder(out: Path, force: bool, inputs=()) -> Iterator[Path]:
     """A temporary folder to write into that becomes `out` on success (the previous `out`
     removed only then); on any error nothing is left behind and `out` is as it was."""
     check_output(out, force, inputs)
-    backup = None
-    if out.is_dir():
-        if any(out.iterdir()):
-            backup = Path(tempfile.mkdtemp(prefix=f".{out.name}-", suffix=".old", dir=out.parent))
-            os.replace(out, backup / out.name)
-        else:
-            out.rmdir()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    new = Path(tempfile.mkdtemp(prefix=f".{out.name}-", suffix=".new", dir=out.parent))
     try:
-        with atomic_path(out, folder=True) as tmp:
-            yield tmp
+        yield new
     except BaseException:
-        if backup is not None:
-            os.replace(backup / out.name, out)
-            backup.rmdir()
+        shutil.rmtree(new, ignore_errors=True)
         raise
-    if backup is not None:
-        shutil.rmtree(backup)
+    replace_folder(out, new)
 
 
 def export(
