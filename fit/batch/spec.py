@@ -70,7 +70,16 @@ def load_batch(path: str | Path) -> Batch:
     """A batch spec from its file; a one-line `InputError` naming the file and key."""
     path = Path(path)
     spec = parse_model(BatchSpec, read_toml(path), path)
+    try:
+        spec.kernel_cache.format(host="node")
+    except (KeyError, IndexError, ValueError):
+        raise ConfigError(
+            f"{path}: kernel_cache = {spec.kernel_cache!r}: only {{host}} may be filled in "
+            "(the node's host name); remove the other braces"
+        ) from None
     out = (path.parent / spec.out).resolve()
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{path}: out = {str(spec.out)!r} is a file; give a folder")
     jobs, names = [], {}
     for config in spec.configs:
         for capture in spec.captures or [None]:

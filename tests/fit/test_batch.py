@@ -149,6 +149,8 @@ def test_a_bad_spec_is_one_line(tmp_path):
         ('configs = ["a/fit.toml"]\nworkers = 2\n', "batch.toml: workers: "),
         ('configs = ["nowhere.toml"]\n', "batch.toml: configs[0]: 'nowhere.toml' does not exist"),
         ('configs = ["a/fit.toml", "b/fit.toml"]\n', "share the run folder 'fit'"),
+        ('configs = ["a/fit.toml"]\nkernel_cache = "~/{node}"\n', "only {host} may be filled in"),
+        ('configs = ["a/fit.toml"]\nout = "a/fit.toml"\n', "out = 'a/fit.toml' is a file"),
     ):
         spec.write_text(text)
         with pytest.raises(InputError, match=re.escape(message)) as err:
