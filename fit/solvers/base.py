@@ -26,8 +26,9 @@ class Outcome(enum.StrEnum):
 
 @dataclass
 class PhaseReport:
-    """One phase's outcome: solver, outcome, steps taken, steps rejected as non-finite, the
-    solver's message, final loss and wall time."""
+    """One phase's outcome: solver, outcome, steps taken, steps rejected (Adam: non-finite ones;
+    LM and BFGS: all of them when the answer is still the start), the solver's message, final
+    loss and wall time."""
 
     solver: str
     outcome: Outcome
@@ -110,9 +111,14 @@ def optimistix_result(name: str, problem: Problem, solution, u0, loss_at, progre
         loss = float(loss_at(u))
     outcome, message = _optimistix_outcome(solution, finite)
     taken = int(solution.stats["num_steps"])
+    # optimistix does not count rejected steps; an answer equal to the start means every step
+    # was (LM and BFGS keep the start until a step decreases the loss)
+    rejected = taken if taken and finite and np.array_equal(u, np.asarray(u0)) else 0
+    if rejected:
+        message = f"every one of the {taken} steps was rejected; kept the start. {message}".strip()
     if progress:
         progress(taken, loss)
-    report = PhaseReport(name, outcome, taken, message=message, loss=loss)
+    report = PhaseReport(name, outcome, taken, rejected, message=message, loss=loss)
     return Result(problem.values(u), u, loss, taken, [loss], [report])
 
 

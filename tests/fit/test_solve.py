@@ -349,3 +349,27 @@ def test_non_finite_steps_are_rejected(problem, monkeypatch):
         result = solve(solver, problem, u0, steps=3, spp=4)
         np.testing.assert_array_equal(result.u, u0)
         assert result.reports[0].outcome == "diverged", solver  # said, never silent
+
+
+def test_a_solver_that_never_moved_says_so():
+    """optimistix does not count rejected steps: an answer equal to the start after some steps
+    is reported as every step rejected (an LM polish at 64 spp from the cup's fit did not move
+    at all and said `rejected: 0`)."""
+    import types
+
+    import optimistix as optx
+
+    from fit.solvers.base import optimistix_result
+
+    material = load_render_config(ROOT / "configs" / "glazed-sphere.toml").material
+    problem = Problem(None, material, resolve(material, ["glaze.ior"]))
+    u0 = np.zeros(1, np.float32)
+    for value, rejected in ((u0, 3), (u0 + 1, 0)):
+        solution = types.SimpleNamespace(
+            value=jnp.asarray(value), stats={"num_steps": 3}, result=optx.RESULTS.max_steps_reached
+        )
+        result = optimistix_result("lm", problem, solution, u0, lambda u: 1.0, None)
+        assert result.reports[0].rejected == rejected
+        assert ("every one of the 3 steps was rejected" in result.reports[0].message) == bool(
+            rejected
+        )
