@@ -87,10 +87,7 @@ class Adam(AbstractSolver):
                 if i >= first_averaged:
                     gain_sums = sums if gain_sums is None else gain_sums + sums
                     sums = gain_sums
-                num, den = sums
-                ok = (num > 0) & (den > 0)
-                log_gains = np.where(ok, np.log(np.where(ok, num, 1) / np.where(ok, den, 1)), 0)
-                new_u = new_u.at[n:].set(log_gains.astype(np.float32))
+                new_u = new_u.at[n:].set(_log_gains(sums))
             value = float(new_state.f)  # the loss at `u`, before this update
             if np.all(np.isfinite(np.asarray(new_u))) and np.isfinite(value):
                 u, state = new_u, new_state
@@ -119,10 +116,7 @@ class Adam(AbstractSolver):
         if tail:
             u = jnp.asarray(np.mean(tail, axis=0))
             if gain_sums is not None:  # the gains of the whole tail's sums, not a mean of ratios
-                num, den = gain_sums
-                ok = (num > 0) & (den > 0)
-                log_gains = np.where(ok, np.log(np.where(ok, num, 1) / np.where(ok, den, 1)), 0)
-                u = u.at[n:].set(log_gains.astype(np.float32))
+                u = u.at[n:].set(_log_gains(gain_sums))
         u = np.asarray(u)
         final = history[-1] if history else float("nan")
         if steps and rejected == steps:
@@ -132,3 +126,11 @@ class Adam(AbstractSolver):
             message = f"{rejected} of {steps} steps rejected as non-finite" if rejected else ""
         report = PhaseReport(self.name, outcome, steps, rejected, message, final)
         return Result(problem.values(u), u, final, steps, history, [report])
+
+
+def _log_gains(sums: np.ndarray) -> np.ndarray:
+    """log(num / den) of least-squares sums `(num, den)`; 0 (gain 1) where either is not positive
+    (a view or channel with no signal)."""
+    num, den = sums
+    ok = (num > 0) & (den > 0)
+    return np.where(ok, np.log(np.where(ok, num, 1) / np.where(ok, den, 1)), 0).astype(np.float32)
