@@ -90,3 +90,9 @@ def driver_variant() -> str | None:
         return mi.variant()
     except (ImportError, AttributeError):
         return os.environ.get(VARIANT_ENV)
+
+
+def one_line_error(err: Exception) -> str:
+    """A Ray task's error as one line: its type and the first line of its cause."""
+    text = str(getattr(err, "cause", None) or err).strip()
+    return f"{type(err).__name__}: {text.splitlines()[0] if text else ''}"

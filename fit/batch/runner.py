@@ -28,7 +28,7 @@ import numpy as np
 from captures.errors import InputError
 from captures.files import write_text
 
-from .cluster import Cancelled, connect, driver_variant, prepare_worker
+from .cluster import Cancelled, connect, driver_variant, one_line_error, prepare_worker
 from .spec import Batch, Job
 
 log = logging.getLogger(__name__)
@@ -155,7 +155,7 @@ def run_batch(
                 try:
                     entries[name] |= ray.get(ready[0])
                 except ray.exceptions.RayError as err:  # the worker died (crash, memory)
-                    entries[name] |= {"status": "failed", "error": _one_line(err)}
+                    entries[name] |= {"status": "failed", "error": one_line_error(err)}
                 done += 1
                 write_index(batch, list(entries.values()))
                 if progress:
@@ -188,11 +188,6 @@ def _base(batch: Batch, job: Job) -> dict:
         "seed": job.seed,
         "run_folder": os.path.relpath(job.out, batch.out),
     }
-
-
-def _one_line(err: Exception) -> str:
-    text = str(getattr(err, "cause", None) or err).strip()
-    return f"{type(err).__name__}: {text.splitlines()[0] if text else ''}"
 
 
 def write_index(batch: Batch, entries: list[dict]) -> list[Path]:

@@ -21,7 +21,14 @@ import numpy as np
 
 from ..config import FitConfig
 from ..solvers import Problem, Result, run_schedule
-from .cluster import DEFAULT_KERNEL_CACHE, Cancelled, connect, driver_variant, prepare_worker
+from .cluster import (
+    DEFAULT_KERNEL_CACHE,
+    Cancelled,
+    connect,
+    driver_variant,
+    one_line_error,
+    prepare_worker,
+)
 
 #: |u| of the centre the other starts spread around (sigmoid(2) = 0.88 of a parameter's range).
 CENTER_LIMIT = 2.0
@@ -119,7 +126,7 @@ def run_starts(
                     outcomes[k] = ray.get(ready[0])
                     row = _row(k, outcomes[k])
                 except ray.exceptions.RayError as err:  # a worker died or the fit raised
-                    message = (str(err).strip().splitlines() or [type(err).__name__])[-1]
+                    message = one_line_error(err)
                     failed[k] = _failed_row(k, prepared.problem.values(points[k]), message)
                     row = failed[k]
                 if on_start:
