@@ -200,12 +200,25 @@ def bench(
     ] = 7,
     only: Annotated[
         str | None,
-        typer.Option(help="Run one table: bsdf, cup, fit or long (fit, long: not run by default)."),
+        typer.Option(
+            help="Run one table: bsdf, cup, fit, long or recovery (fit, long, recovery: not run "
+            "by default)."
+        ),
     ] = None,
     fit_config: Annotated[
         Path, typer.Option(help="--only fit: the fit config whose schedules are compared.")
     ] = Path("configs/peer-sphere.toml"),
     steps: Annotated[int, typer.Option(help="--only long: Adam steps of the long run.")] = 1000,
+    size: Annotated[
+        str, typer.Option(help="--only recovery: each view's WIDTHxHEIGHT.")
+    ] = "160x120",
+    shapes: Annotated[
+        str, typer.Option(help="--only recovery: comma-separated shapes (sphere, cup).")
+    ] = "sphere,cup",
+    results: Annotated[
+        Path,
+        typer.Option(help="--only recovery: JSON of finished cases (kept: a rerun resumes)."),
+    ] = Path("bench-recovery.json"),
     out: Annotated[Path | None, typer.Option(help="Also write the tables (Markdown) here.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace an existing --out.")] = False,
     ray: Annotated[
@@ -221,10 +234,13 @@ def bench(
     memory per step over a long Adam run, plotted to a PNG beside --out (or bench-long.png)."""
     from captures.files import check_output, write_text
 
-    if only not in (None, "bsdf", "cup", "fit", "long"):
-        raise _fail(f"--only {only!r}: choose bsdf, cup, fit or long", 2)
+    if only not in (None, "bsdf", "cup", "fit", "long", "recovery"):
+        raise _fail(f"--only {only!r}: choose bsdf, cup, fit, long or recovery", 2)
     if steps < 2:
         raise _fail(f"--steps {steps}: give at least 2", 2)
+    width, height, shape_list = (
+        _recovery_options(size, shapes) if only == "recovery" else (0, 0, [])
+    )
     plot = (out.with_suffix(".png") if out else Path("bench-long.png")) if only == "long" else None
     try:
         if out is not None:
@@ -241,6 +257,7 @@ def bench(
         long_run,
         long_run_table,
         plot_long_run,
+        recovery_table,
     )
 
     tables = []
@@ -256,6 +273,11 @@ def bench(
                 run = long_run(steps=steps, progress=bar)
                 tables.append(long_run_table(run))
                 console.print(f"wrote {plot_long_run(run, plot)}", markup=False)
+            if only == "recovery":
+                from .recovery import sweep
+
+                cases = sweep(tuple(shape_list))
+                tables.append(recovery_table(cases, width, height, results, bar, force))
         except (InputError, ValueError) as err:
             raise _fail(err, 2) from None
     for table in tables:
@@ -263,6 +285,20 @@ def bench(
     if out is not None:
         write_text(out, "\n".join(t.markdown() for t in tables))
         console.print(f"wrote {out}", markup=False, highlight=False)
+
+
+def _recovery_options(size: str, shapes: str) -> tuple[int, int, list[str]]:
+    """--size WxH and --shapes, checked (exit 2 with the fix)."""
+    from .recovery import SHAPES
+
+    parts = size.lower().split("x")
+    if len(parts) != 2 or not all(p.isdigit() and int(p) >= 8 for p in parts):
+        raise _fail(f"--size {size!r}: give WIDTHxHEIGHT, each at least 8 (e.g. 160x120)", 2)
+    names = [s.strip() for s in shapes.split(",") if s.strip()]
+    unknown = [s for s in names if s not in SHAPES]
+    if not names or unknown:
+        raise _fail(f"--shapes {shapes!r}: choose from {', '.join(SHAPES)}", 2)
+    return int(parts[0]), int(parts[1]), names
 
 
 @app.command()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -16,6 +18,10 @@ from .problem import residuals
 class AdamOptions(Options):
     lr: PositiveFloat = 0.05
     """Learning rate (in the solver's unconstrained space)."""
+    lr_end: PositiveFloat | None = None
+    """The last step's learning rate: the rate decays geometrically from `lr` over the phase
+    (None: constant). Adam's iterates wander by about the rate under Monte Carlo noise; a phase
+    that ends at a small rate hands the next one a start near its optimum."""
     average: float = Field(0.0, ge=0.0, le=1.0)
     """Fraction of the last iterates averaged into the result (Polyak; 0: the last iterate)."""
     profile_gains: bool = True
@@ -59,7 +65,11 @@ class Adam(AbstractSolver):
             r, sums = residual(u, seed) if profile else (residual(u, seed), None)
             return 0.5 * jnp.dot(r, r), sums
 
-        solver = optx.OptaxMinimiser(optax.adam(options.lr), rtol=0.0, atol=0.0)
+        rate = options.lr
+        if options.lr_end is not None and steps > 1:
+            decay = (options.lr_end / options.lr) ** (1.0 / (steps - 1))
+            rate = functools.partial(_geometric, options.lr, decay)
+        solver = optx.OptaxMinimiser(optax.adam(rate), rtol=0.0, atol=0.0)
         u = jnp.asarray(u0, jnp.float32)
         f_struct = jax.ShapeDtypeStruct((), jnp.float32)
         state = solver.init(loss, u, jnp.int32(seed), {}, f_struct, None, frozenset())
@@ -126,6 +136,12 @@ class Adam(AbstractSolver):
             message = f"{rejected} of {steps} steps rejected as non-finite" if rejected else ""
         report = PhaseReport(self.name, outcome, steps, rejected, message, final)
         return Result(problem.values(u), u, final, steps, history, [report])
+
+
+def _geometric(lr: float, decay: float, count):
+    """The rate at step `count` (a partial of this, not a closure: optimistix turns the optimiser's
+    closures into pytrees and cannot take optax's schedules')."""
+    return lr * decay**count
 
 
 def _log_gains(sums: np.ndarray) -> np.ndarray:

@@ -3,10 +3,12 @@
 from .adam import Adam
 from .base import AbstractSolver
 from .bfgs import BFGS
+from .gn import GaussNewton
 from .lm import LevenbergMarquardt
 
 SOLVERS: dict[str, type[AbstractSolver]] = {
     "adam": Adam,
     "lm": LevenbergMarquardt,
     "bfgs": BFGS,
+    "gn": GaussNewton,
 }

@@ -81,15 +81,16 @@ class Phase(BaseModel):
         return f"{self.solver}, {self.spp} spp, 1/{self.downscale} res"
 
 
-#: The default schedule (measured on the Cycles sphere, README "Fitting"): Adam with fresh seeds
-#: at half resolution and 8 spp is cheap and robust from far away (its scale-free steps also move
-#: a parameter started next to a bound, where the sigmoid is flat); then Adam at full resolution,
-#: 32 spp, a small rate, averaging the last half of the iterates (Polyak: the steps' Monte Carlo
-#: noise cancels). LM polishes measured worse there: with one seed it converges to that seed's
-#: biased optimum (alpha +7 % at 64 spp), with a decorrelated Jacobian to alpha +3 %.
+#: The default schedule: Adam with fresh seeds at half resolution and 8 spp is cheap and robust
+#: from far away (its scale-free steps also move a parameter started next to a bound, where the
+#: sigmoid is flat); then the stochastic Gauss-Newton phase at full resolution, 16 spp, its
+#: curvature refreshed every 10 steps, averaging the last half of the iterates. It replaced a
+#: second Adam phase (60 x 32 spp, lr 0.02) that could not relax from where the first one left
+#: a weakly determined parameter: alpha 0.02 on a 160x120 sphere ended +12 % for one seed, and
+#: +24 to +127 % at alpha 0.01-0.02 on 96x72 (BENCHMARKS, "Recovery over the range").
 DEFAULT_SCHEDULE = (
     Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
-    Phase(solver="adam", steps=60, spp=32, lr=0.02, average=0.5),
+    Phase(solver="gn", steps=40, spp=16, jacobian_spp=16, refresh=10, average=0.5),
 )
 
 

@@ -14,6 +14,45 @@ from .problem import Problem, residuals
 MAX_UNCERTAINTY_PARAMS = 64
 
 
+#: The second Jacobian render of the uncertainty uses the seed plus this offset.
+CROSS_SEED_OFFSET = 0xC2055
+
+
+def _cross(a: np.ndarray, b: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
+    """`(a^T W b + b^T W a) / 2`, W = diag(weight): unbiased for `E[a]^T W E[a]` when a and b
+    are independent estimates of one matrix."""
+    wb = b if weight is None else b * weight[:, None]
+    product = a.T @ wb
+    return 0.5 * (product + product.T)
+
+
+def _inverse_determined(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The inverse of a symmetric matrix on the span of its clearly positive eigenvalues (above
+    1e-9 of the largest), and which coordinates load on a direction that is not (undetermined)."""
+    values, vectors = np.linalg.eigh(h)
+    floor = 1e-9 * max(float(np.max(np.abs(values))), 1e-300)
+    good = values > floor
+    inverse = (vectors[:, good] / values[good]) @ vectors[:, good].T
+    undetermined = np.abs(vectors[:, ~good]).max(axis=1, initial=0.0) > 1e-6
+    return inverse, undetermined
+
+
+def linearised(
+    problem: Problem, u, spp: int, seed: int, downscale: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
+    """The weighted residuals at `u` and their Jacobian in the solver's space (gains included),
+    from one Jacobian render at `spp` (one forward-mode pass per material component); the
+    residual's own derivatives (gains, loss, weights) follow in JAX through the render's
+    linearisation."""
+    n = problem.n_material
+    u = jnp.asarray(u, jnp.float32)
+    x0 = to_physical(problem.free, u[:n], jnp)
+    image0, jac_x = problem.renderer(downscale).jacobian(np.asarray(x0), seed, spp)
+    residual = residuals(problem, lambda x, _: image0 + jac_x @ (x - x0), downscale)
+    r = np.asarray(residual(u, 0), np.float64)
+    return r, np.asarray(jax.jacfwd(residual)(u, 0), np.float64)
+
+
 def uncertainty(
     problem: Problem,
     u,
@@ -23,39 +62,52 @@ def uncertainty(
     downscale: int = 1,
 ) -> tuple[dict, np.ndarray, list[str]]:
     """Gauss-Newton covariance at the solver's vector `u` in its sandwich form,
-    `(J^T J)^-1 J^T diag(r^2) J (J^T J)^-1 * N / (N - P)` (J, r: the weighted Jacobian and
-    residuals of one `spp` render), mapped to physical units through the transforms' derivatives.
+    `H^-1 J^T diag(r^2) J H^-1 * N / (N - P)` with `H = J^T J` (J, r: the weighted Jacobian and
+    residuals), mapped to physical units through the transforms' derivatives.
 
     The plain form `s^2 (J^T J)^-1` assumes every pixel equally noisy; Monte Carlo noise gathers
-    in highlights, where roughness and ior are decided. Measured on the synthetic 3-view sphere of
-    the default job: plain std alpha 0.00008 / ior 0.0005 against actual errors 0.0014 / 0.0053;
-    the sandwich gives 0.0015 / 0.0054 (at 64 spp; its render noise makes it conservative).
+    in highlights, where roughness and ior are decided (measured on the default job's sphere:
+    plain std alpha 0.00008 / ior 0.0005 against actual errors 0.0014 / 0.0053).
+
+    A rendered Jacobian is noisy, and `J^T J` of one render is `E[J]^T E[J]` plus the noise's
+    covariance: where the image barely depends on a parameter (alpha 0.01 on a small sphere:
+    the forward derivative's noise is 40 % of its mean over 40 x 32 spp) that noise is the
+    curvature, and the standard deviation came out 7x too small. So the Jacobian is rendered
+    twice with independent seeds at `spp / 2` each, and the curvature is their symmetrised cross
+    product `(J1^T J2 + J2^T J1) / 2`, whose expectation is the noise-free one. A direction
+    whose cross curvature is not positive (its noise larger than its signal) is undetermined:
+    its standard deviation is reported as infinite. The meat comes from the two renders' mean
+    Jacobian and residual (a sum of squares: noise can only widen it).
 
     Returns per-parameter standard deviations, the correlation matrix, and the parameters whose
     standard deviation exceeds `threshold` of their range (of their value, for gains and emitter
     scales) or that are not determined at all."""
     n = problem.n_material
     u = jnp.asarray(u, jnp.float32)
-    x0 = to_physical(problem.free, u[:n], jnp)
-    image0, jac_x = problem.renderer(downscale).jacobian(np.asarray(x0), seed, spp)
-    # one Jacobian render; the residual's own Jacobian (gains, loss, weights) follows in JAX
-    # through the render's linearisation at `u`
-    residual = residuals(problem, lambda x, _: image0 + jac_x @ (x - x0), downscale)
-    r = np.asarray(residual(u, 0), np.float64)
-    jac = np.asarray(jax.jacfwd(residual)(u, 0), np.float64)
+    half = max(spp // 2, 1)
+    r1, jac1 = linearised(problem, u, half, seed, downscale)
+    r2, jac2 = linearised(problem, u, half, seed + CROSS_SEED_OFFSET, downscale)
     dxdu = np.concatenate(
         [
             np.diag(np.asarray(jax.jacfwd(lambda v: to_physical(problem.free, v, jnp))(u[:n]))),
             np.exp(np.asarray(u[n:], np.float64)),
         ]
     )
-    n_obs = int(np.count_nonzero(np.any(jac != 0, axis=1)))
-    bread = np.linalg.pinv(jac.T @ jac)
-    meat = jac.T @ (jac * (r**2)[:, None])
-    cov = n_obs / max(n_obs - jac.shape[1], 1) * bread @ meat @ bread
+    n_obs = int(np.count_nonzero(np.any((jac1 != 0) | (jac2 != 0), axis=1)))
+    bread, undetermined = _inverse_determined(_cross(jac1, jac2))
+    # the meat is a sum of squares whatever its noise (a cross product can be indefinite there);
+    # from the mean Jacobian (half of one render's noise), it errs on the wide side
+    mean = 0.5 * (jac1 + jac2)
+    meat = mean.T @ (mean * ((0.5 * (r1 + r2)) ** 2)[:, None])
+    cov = n_obs / max(n_obs - jac1.shape[1], 1) * bread @ meat @ bread
+    cov[undetermined, :] = cov[:, undetermined] = 0.0
+    cov[undetermined, undetermined] = np.inf
     cov = cov * np.outer(dxdu, dxdu)
     std_flat = np.sqrt(np.clip(np.diag(cov), 0, None))
-    corr = cov / np.maximum(np.outer(std_flat, std_flat), 1e-30)
+    with np.errstate(invalid="ignore"):  # inf / inf where undetermined: no correlation known
+        corr = cov / np.maximum(np.outer(std_flat, std_flat), 1e-30)
+    corr = np.where(np.isfinite(corr), corr, 0.0)
+    np.fill_diagonal(corr, 1.0)
     values = problem.values(np.asarray(u))
     std, flagged, i = {}, [], 0
     # flagged against the range, or the value itself for scale factors (log-space bounds)
@@ -70,7 +122,7 @@ def uncertainty(
         s = std_flat[i : i + size]
         std[key] = s.tolist() if size > 1 else float(s[0])
         reference = scale if scale is not None else np.asarray(values[key])
-        if np.any(s > threshold * reference) or np.any(s == 0):
+        if np.any(s > threshold * reference) or np.any(s == 0) or not np.all(np.isfinite(s)):
             flagged.append(key)
         i += size
     return std, corr, flagged

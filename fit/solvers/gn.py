@@ -1,0 +1,171 @@
+"""Stochastic Gauss-Newton: fresh-seed gradients preconditioned by a Gauss-Newton curvature, the
+iterates of the phase's tail averaged."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from pydantic import Field, PositiveFloat, PositiveInt
+
+from .adam import _log_gains
+from .base import AbstractSolver, Options, Outcome, PhaseReport, Result
+from .problem import residuals
+from .uncertainty import linearised
+
+
+class GNOptions(Options):
+    eta: float = Field(0.5, gt=0.0, le=1.0)
+    """Fraction of the Gauss-Newton step taken (1: the full step to the linearised optimum)."""
+    jacobian_spp: PositiveInt = 16
+    """Samples per pixel of the curvature's Jacobian render (a decorrelated seed)."""
+    refresh: PositiveInt = 10
+    """Steps between curvature updates (a Jacobian render each)."""
+    damping: PositiveFloat = 1e-3
+    """Levenberg damping: the curvature is scaled by 1 + damping."""
+    floor: PositiveFloat = 1e-6
+    """The smallest curvature eigenvalue, as a fraction of the largest."""
+    max_step: PositiveFloat = 1.0
+    """The largest change of any solver coordinate in one step."""
+    average: float = Field(0.5, ge=0.0, le=1.0)
+    """Fraction of the last iterates averaged into the result (Polyak)."""
+
+
+class GaussNewton(AbstractSolver):
+    """Each step: the loss's gradient from a render with a fresh seed (its adjoint decorrelated,
+    as Adam's), times the inverse of a Gauss-Newton curvature `J^T J` rendered every `refresh`
+    steps at `jacobian_spp` with yet another seed, a fraction `eta` of that step.
+
+    Under Monte Carlo noise Adam normalises each coordinate by its gradient noise: where the
+    image barely depends on a parameter (a sharp highlight's width, alpha 0.02 on a 96 x 72
+    sphere) its steps are noise, and at a rate that keeps them small it takes about a hundred
+    steps to relax toward the optimum, far longer than a phase. The curvature scales every
+    direction by how much the image depends on it, so the iterates relax in about 1/eta steps
+    whatever the parameter, and the tail's average cancels the steps' noise. A noisy Jacobian
+    only overestimates the curvature (shorter steps), never biases the fixed point, which is
+    the zero of the expected gradient. With profiled gains (L2), the material's curvature is the
+    Schur complement of the gains' block (the gains follow in closed form between steps)."""
+
+    name = "gn"
+    Options = GNOptions
+
+    def run(
+        self,
+        problem,
+        u0,
+        *,
+        steps,
+        spp,
+        seed,
+        downscale,
+        options,
+        progress=None,
+        resume=None,
+        offer=None,
+    ) -> Result:
+        render = problem.render_fn("reverse", spp, downscale)
+        profile = bool(problem.gains and problem.loss == "l2")
+        residual = residuals(
+            problem, render, downscale, independent_gains=True, profile_gains=profile
+        )
+        n = problem.n_material
+
+        def loss(u, seed):
+            r, sums = residual(u, seed) if profile else (residual(u, seed), None)
+            return 0.5 * jnp.dot(r, r), sums
+
+        value_and_grad = jax.jit(jax.value_and_grad(loss, has_aux=True))
+        u = np.asarray(u0, np.float32)
+        history, tail, rejected, first, gain_sums = [], [], 0, 0, None
+        mean_jac = inverse = None
+        if resume is not None:
+            u, first = np.asarray(resume["u"], np.float32), int(resume["step"])
+            history, rejected = list(resume["history"]), int(resume["rejected"])
+            tail = list(np.asarray(resume["tail"]))
+            gain_sums = resume.get("gain_sums")
+            if resume["leaves"]:  # the Jacobian in use when the state was offered
+                mean_jac = np.asarray(resume["leaves"][0], np.float64)
+                inverse = self._inverse(self._curvature(problem, mean_jac, n), options)
+        first_averaged = steps - round(options.average * steps)
+        for i in range(first, steps):
+            step_seed = seed * 100003 + i + 1
+            if inverse is None or i % options.refresh == 0:
+                # the mean of the phase's Jacobians so far: a rendered Jacobian's noise adds to
+                # its J^T J (too short steps where the image barely depends on a parameter);
+                # averaging k renders divides that excess by k
+                jac = self._jacobian(problem, u, options, step_seed, downscale)
+                k = i // options.refresh + 1
+                mean_jac = jac if mean_jac is None else mean_jac + (jac - mean_jac) / k
+                inverse = self._inverse(self._curvature(problem, mean_jac, n), options)
+            (value, sums), grad = value_and_grad(jnp.asarray(u), jnp.int32(step_seed))
+            value, grad = float(value), np.asarray(grad, np.float64)
+            m = n if profile else len(u)
+            delta = -options.eta * (inverse @ grad[:m])
+            delta *= min(1.0, options.max_step / max(float(np.max(np.abs(delta))), 1e-30))
+            new_u = u.copy()
+            new_u[:m] += delta.astype(np.float32)
+            if profile and np.all(np.isfinite(sums := np.asarray(sums, np.float64))):
+                if i >= first_averaged:
+                    gain_sums = sums if gain_sums is None else gain_sums + sums
+                    sums = gain_sums
+                new_u[n:] = _log_gains(sums)
+            if np.all(np.isfinite(new_u)) and np.isfinite(value):
+                u = new_u
+            else:
+                rejected += 1
+            history.append(value)
+            if i >= first_averaged:
+                tail.append(u.copy())
+            if progress:
+                progress(i + 1, value)
+            if offer:
+                offer(
+                    {
+                        "step": i + 1,
+                        "u": u,
+                        "leaves": [mean_jac],
+                        "history": history,
+                        "n_history": len(history),
+                        "tail": tail,
+                        "n_tail": len(tail),
+                        "rejected": rejected,
+                        **({"gain_sums": gain_sums} if gain_sums is not None else {}),
+                    }
+                )
+        if tail:
+            u = np.mean(tail, axis=0).astype(np.float32)
+            if gain_sums is not None:
+                u[n:] = _log_gains(gain_sums)
+        final = history[-1] if history else float("nan")
+        if steps and rejected == steps:
+            outcome, message = Outcome.DIVERGED, "every step was non-finite; kept the start"
+        else:
+            outcome = Outcome.STEP_LIMIT
+            message = f"{rejected} of {steps} steps rejected as non-finite" if rejected else ""
+        report = PhaseReport(self.name, outcome, steps, rejected, message, final)
+        return Result(problem.values(u), u, final, steps, history, [report])
+
+    @staticmethod
+    def _jacobian(problem, u, options, seed, downscale) -> np.ndarray:
+        """The residuals' Jacobian at `u` from one render at `jacobian_spp` (its own seed)."""
+        return linearised(problem, u, options.jacobian_spp, seed + 0x5EED, downscale)[1]
+
+    @staticmethod
+    def _curvature(problem, jac: np.ndarray, n: int) -> np.ndarray:
+        """`J^T J`; with profiled gains, the material's Schur complement (the gains at their
+        best for every material)."""
+        h = jac.T @ jac
+        if bool(problem.gains and problem.loss == "l2"):
+            h = h[:n, :n] - h[:n, n:] @ np.linalg.pinv(h[n:, n:]) @ h[n:, :n]
+        return h
+
+    @staticmethod
+    def _inverse(h: np.ndarray, options) -> np.ndarray:
+        """The damped inverse of a curvature through its eigenvalues, each at least `floor` of
+        the largest; the identity if the curvature is not finite."""
+        if not np.all(np.isfinite(h)):
+            return np.eye(len(h))
+        values, vectors = np.linalg.eigh(0.5 * (h + h.T))
+        floor = options.floor * max(float(values.max()), 1e-300)
+        values = np.maximum(values, floor) * (1.0 + options.damping)
+        return (vectors / values) @ vectors.T
