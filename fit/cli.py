@@ -213,12 +213,18 @@ def bench(
         str, typer.Option(help="--only recovery: each view's WIDTHxHEIGHT.")
     ] = "160x120",
     shapes: Annotated[
-        str, typer.Option(help="--only recovery: comma-separated shapes (sphere, cup).")
+        str, typer.Option(help="--only recovery, grid: comma-separated shapes (sphere, cup).")
     ] = "sphere,cup",
+    widths: Annotated[
+        str, typer.Option(help="--only grid: comma-separated image widths (height: 3/4 of it).")
+    ] = "64,128,256",
     results: Annotated[
-        Path,
-        typer.Option(help="--only recovery: JSON of finished cases (kept: a rerun resumes)."),
-    ] = Path("bench-recovery.json"),
+        Path | None,
+        typer.Option(
+            help="--only recovery, grid: JSON of finished cases (kept: a rerun resumes; default "
+            "bench-recovery.json, bench-grid.json)."
+        ),
+    ] = None,
     out: Annotated[Path | None, typer.Option(help="Also write the tables (Markdown) here.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace an existing --out.")] = False,
     ray: Annotated[
@@ -234,18 +240,24 @@ def bench(
     memory per step over a long Adam run, plotted to a PNG beside --out (or bench-long.png)."""
     from captures.files import check_output, write_text
 
-    if only not in (None, "bsdf", "cup", "fit", "long", "recovery"):
-        raise _fail(f"--only {only!r}: choose bsdf, cup, fit, long or recovery", 2)
+    if only not in (None, "bsdf", "cup", "fit", "long", "recovery", "grid"):
+        raise _fail(f"--only {only!r}: choose bsdf, cup, fit, long, recovery or grid", 2)
     if steps < 2:
         raise _fail(f"--steps {steps}: give at least 2", 2)
     width, height, shape_list = (
         _recovery_options(size, shapes) if only == "recovery" else (0, 0, [])
     )
-    plot = (out.with_suffix(".png") if out else Path("bench-long.png")) if only == "long" else None
+    plot = (
+        (out.with_suffix(".png") if out else Path(f"bench-{only}.png"))
+        if only in ("long", "grid")
+        else None
+    )
+    results = results or Path(f"bench-{only}.json")
     try:
         if out is not None:
             check_output(out, "--out", force=force, inputs=[fit_config])
-        if plot is not None:
+        resuming = only == "grid" and results.exists()  # its plot is redrawn from the results
+        if plot is not None and not resuming:
             check_output(plot, "--out (its plot)", force=force, inputs=[fit_config])
     except InputError as err:
         raise _fail(err, 2) from None
@@ -254,6 +266,8 @@ def bench(
         bsdf_speed_table,
         cup_speed_table,
         fit_trade_table,
+        grid_cells,
+        grid_table,
         long_run,
         long_run_table,
         plot_long_run,
@@ -278,6 +292,10 @@ def bench(
 
                 cases = sweep(tuple(shape_list))
                 tables.append(recovery_table(cases, width, height, results, bar, force))
+            if only == "grid":
+                cells = grid_cells(tuple(shape_list), _widths(widths))
+                tables.append(grid_table(cells, results, bar, force, plot))
+                console.print(f"wrote {plot}", markup=False)
         except (InputError, ValueError) as err:
             raise _fail(err, 2) from None
     for table in tables:
@@ -285,6 +303,14 @@ def bench(
     if out is not None:
         write_text(out, "\n".join(t.markdown() for t in tables))
         console.print(f"wrote {out}", markup=False, highlight=False)
+
+
+def _widths(text: str) -> tuple[int, ...]:
+    """--widths, checked (exit 2 with the fix)."""
+    parts = [p.strip() for p in text.split(",") if p.strip()]
+    if not parts or not all(p.isdigit() and int(p) >= 16 for p in parts):
+        raise _fail(f"--widths {text!r}: give comma-separated widths, each at least 16", 2)
+    return tuple(int(p) for p in parts)
 
 
 def _recovery_options(size: str, shapes: str) -> tuple[int, int, list[str]]:

@@ -567,7 +567,8 @@ def recovery_table(
     """Fit each synthetic case back from the common start with the default schedule (see
     `fit.recovery`); each outcome is saved to `results` (JSON, rewritten atomically after
     every case) and a case already there (same size, schedule and start) is not fitted again,
-    so a stopped sweep resumes (`replace`: start again). The calibration table: each parameter's error and error/sigma."""
+    so a stopped sweep resumes (`replace`: start again). The calibration table: each
+    parameter's error and error/sigma."""
     import json
 
     from captures.errors import InputError
@@ -630,3 +631,363 @@ def recovery_table(
             machine(),
         ],
     )
+
+
+# The loop a Mitsuba user writes today (issue 14) --------------------------------------------------
+
+#: The tutorial loop, pinned: Mitsuba's own Adam on raw values, 200 iterations at 16 spp and lr
+#: 0.05, then 100 at 64 spp and lr 0.01; iteration i renders with seed i, its gradient with seed
+#: i + TUTORIAL_GRAD_SEED; values clipped to the parameters' bounds after each step.
+TUTORIAL = ((200, 16, 0.05), (100, 64, 0.01))
+TUTORIAL_GRAD_SEED = 1_000_003
+
+
+def tutorial_loop(problem, start: dict) -> tuple[float, dict, int]:
+    """The loop of a Mitsuba tutorial, natively (no JAX, no transforms, no freezing): one scene
+    per view, `mi.ad.Adam` on the raw parameter values, `dr.backward` of the weighted squared
+    error through `mi.render` with a decorrelated `seed_grad`, clipped to bounds. Returns its
+    wall time until the final values are read (Dr.Jit evaluates lazily: a loop's iterations
+    return before their work is done), the values, and the renders (primal and adjoint each
+    count one per view)."""
+    import drjit as dr
+
+    from ..render import MATERIAL_PREFIX
+
+    capture = problem.capture
+    _, sqrt_w = problem.target()
+    scenes, params, targets, weights, offset = [], [], [], [], 0
+    for i, view in enumerate(capture.views):
+        scenes.append(mi.load_dict(scene_dict(capture.scene_of(i), problem.material, 0, 16)))
+        params.append(mi.traverse(scenes[-1]))
+        targets.append(mi.TensorXf(view.image))
+        size = view.image.size
+        weights.append(mi.TensorXf(sqrt_w[offset : offset + size].reshape(view.image.shape)))
+        offset += size
+    keys = [MATERIAL_PREFIX + f.traverse for f in problem.free]
+    began = time.perf_counter()
+    opt = mi.ad.Adam(lr=TUTORIAL[0][2])
+    for f, key in zip(problem.free, keys, strict=True):
+        opt[key] = type(params[0][key])(*np.ravel(start[f.key]).tolist())
+    it, renders = 0, 0
+    for iterations, spp, lr in TUTORIAL:
+        opt.set_learning_rate(lr)
+        for _ in range(iterations):
+            loss = mi.Float(0.0)
+            for scene, p, target, weight in zip(scenes, params, targets, weights, strict=True):
+                p.update(opt)
+                image = mi.render(scene, p, spp=spp, seed=it, seed_grad=it + TUTORIAL_GRAD_SEED)
+                loss += dr.sum(dr.square((image - target) * weight), axis=None)
+                renders += 2
+            dr.backward(loss)
+            opt.step()
+            for f, key in zip(problem.free, keys, strict=True):
+                opt[key] = dr.clip(opt[key], f.spec.lower, f.spec.upper)
+            it += 1
+    values = {}
+    for f, key in zip(problem.free, keys, strict=True):
+        value = np.ravel(np.asarray(opt[key], np.float64))
+        values[f.key] = value.tolist() if f.size > 1 else float(value[0])
+    return time.perf_counter() - began, values, renders
+
+
+# The bench grid: resolution x spp x solver, and the tutorial loop (issue 14) ----------------------
+
+GRID_WIDTHS = (64, 128, 256)
+GRID_SPPS = (4, 16, 64)
+GRID_SOLVERS = ("adam", "lm", "bfgs", "default")
+#: The cup's diagonal subset: (width, spp) pairs, each with every solver.
+CUP_DIAGONAL = ((64, 4), (128, 16), (256, 64))
+
+
+def grid_schedule(solver: str, spp: int) -> tuple:
+    """A cell's schedule: one phase of `solver` at `spp` (Adam 150 steps, lr 0.05, the last half
+    averaged; LM 10 steps, its Jacobian decorrelated at `spp`; BFGS 30 steps, one seed), or the
+    default schedule with its sample counts scaled so that its last phase renders at `spp`."""
+    from ..solvers import DEFAULT_SCHEDULE, Phase
+
+    if solver == "adam":
+        return (Phase(solver="adam", steps=150, spp=spp, lr=0.05, average=0.5),)
+    if solver == "lm":
+        return (Phase(solver="lm", steps=10, spp=spp, jacobian_spp=spp),)
+    if solver == "bfgs":
+        return (Phase(solver="bfgs", steps=30, spp=spp),)
+    if solver == "default":
+        scale = spp / DEFAULT_SCHEDULE[-1].spp
+        return tuple(
+            p.model_copy(update={"spp": max(1, round(p.spp * scale))}) for p in DEFAULT_SCHEDULE
+        )
+    raise ValueError(f"solver {solver!r}")
+
+
+def grid_cells(
+    shapes=("sphere", "cup"), widths: tuple[int, ...] = GRID_WIDTHS
+) -> list[tuple[str, int, int, str]]:
+    """(shape, width, spp, solver) of every cell: the full grid on the sphere, the diagonal on
+    the cup (its pairs whose width is among `widths`), and the tutorial loop (its own spp) at
+    each sphere width."""
+    cells = []
+    if "sphere" in shapes:
+        for width in widths:
+            cells += [("sphere", width, s, v) for s in GRID_SPPS for v in GRID_SOLVERS]
+            cells.append(("sphere", width, 0, "tutorial"))
+    if "cup" in shapes:
+        pairs = [(w, s) for w, s in CUP_DIAGONAL if w in widths]
+        cells += [("cup", w, s, v) for w, s in pairs for v in GRID_SOLVERS]
+    return cells
+
+
+def _cell_name(shape: str, width: int, spp: int, solver: str) -> str:
+    return f"{shape} {width} {'16+64' if solver == 'tutorial' else spp} {solver}"
+
+
+def _counting(renderer) -> list[int]:
+    """Count the per-view passes (primal, adjoint, forward) a `Renderer` makes."""
+    count = [0]
+    views = sum(len(g.views) for g in renderer.groups)
+    render, vjp, jacobian = renderer.render, renderer.vjp, renderer.jacobian
+
+    def counted_render(*args, **kwargs):
+        count[0] += views
+        return render(*args, **kwargs)
+
+    def counted_vjp(*args, **kwargs):
+        count[0] += views
+        return vjp(*args, **kwargs)
+
+    def counted_jacobian(*args, **kwargs):
+        count[0] += views * renderer.n_params
+        return jacobian(*args, **kwargs)
+
+    renderer.render, renderer.vjp, renderer.jacobian = counted_render, counted_vjp, counted_jacobian
+    return count
+
+
+def grid_cell(shape: str, width: int, spp: int, solver: str) -> dict:
+    """One cell: the case's three views fitted (after an untimed warm-up of one step per phase,
+    which compiles the kernels), then a fourth, held-out view rendered at 256 spp with the
+    fitted values against its own target (relative RMSE over the object)."""
+    import dataclasses
+
+    from .. import recovery
+    from ..material import resolve
+    from ..render import render
+    from ..solvers import Problem, run_schedule
+
+    height = width * 3 // 4
+    case = recovery.Case(shape)
+    capture = recovery.capture(case, width, height)
+    material = recovery.glaze(recovery.START)
+    free = resolve(material, list(recovery.KEYS))
+
+    def problem():
+        p = Problem(capture, material, free)
+        for downscale in (1, 2):
+            p.renderer(downscale)
+        return p
+
+    if solver == "tutorial":
+        warm = problem()
+        saved = globals()["TUTORIAL"]
+        globals()["TUTORIAL"] = ((1, 16, 0.05), (1, 64, 0.01))
+        try:
+            tutorial_loop(warm, recovery.START)
+        finally:
+            globals()["TUTORIAL"] = saved
+        seconds, values, renders = tutorial_loop(problem(), recovery.START)
+    else:
+        schedule = grid_schedule(solver, spp)
+        short = tuple(p.model_copy(update={"steps": 1}) for p in schedule)
+        run_schedule(problem(), recovery.START, short, 0, uncertainty_spp=4)
+        p = problem()
+        counts = [_counting(p.renderer(d)) for d in (1, 2)]
+        began = time.perf_counter()
+        values = run_schedule(p, recovery.START, schedule, 0).values
+        seconds = time.perf_counter() - began
+        renders = sum(c[0] for c in counts)
+    truth = case.truth()
+    errors = {
+        k: float(np.max(np.abs(np.subtract(values[k], truth[k])) / np.abs(truth[k])))
+        for k in recovery.KEYS
+    }
+    # the held-out view: a camera between the front and the right one, a little higher
+    studio = recovery.studio(shape, width, height)
+    center, radius = _bounding(studio)
+    camera = dataclasses.replace(
+        studio.cameras[0],
+        origin=tuple(float(c) for c in center + radius * np.array([2.0, -4.6, 2.0])),
+    )
+    held_scene = dataclasses.replace(studio, cameras=(camera,))
+    target = render(mi.load_dict(scene_dict(held_scene, recovery.glaze(truth), 0, 256)), 256, 7)
+    fitted = render(mi.load_dict(scene_dict(held_scene, recovery.glaze(values), 0, 256)), 256, 8)
+    mask = target.max(axis=2) > 0.2 * float(np.median(target))
+    held = float(np.sqrt(np.mean((fitted - target)[mask] ** 2)) / np.mean(target[mask]))
+    return {
+        "seconds": seconds,
+        "renders": renders,
+        "errors": errors,
+        "max_relative_error": max(errors.values()),
+        "held_out_rmse": held,
+        "values": values,
+    }
+
+
+def _bounding(scene):
+    from captures.scene import bounding_sphere
+
+    return bounding_sphere(scene.geometry)
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[bool]:
+    """Which (time, error) points no other point beats (at most as slow and as wrong, and better
+    in one); equal points are both on the front."""
+    return [
+        not any(
+            (t2 <= t and e2 <= e) and (t2 < t or e2 < e)
+            for j, (t2, e2) in enumerate(points)
+            if j != i
+        )
+        for i, (t, e) in enumerate(points)
+    ]
+
+
+def grid_table(
+    cells, results: Path, progress=None, replace: bool = False, plot: Path | None = None
+):
+    """Run (or read back from `results`) every cell; the table, and the Pareto plot of wall time
+    against max relative error per shape (the front marked)."""
+    import json
+
+    from captures.errors import InputError
+    from captures.files import write_text
+
+    from ..solvers import DEFAULT_SCHEDULE
+
+    setting = {"default": [p.describe() + f" x {p.steps}" for p in DEFAULT_SCHEDULE]}
+    done: dict = {}
+    if results.exists() and not replace:
+        try:
+            saved = json.loads(results.read_text())
+            same = saved.get("setting") == setting
+        except (OSError, ValueError, AttributeError):
+            raise InputError(
+                f"{results}: not a grid results file; give another --results or --force"
+            ) from None
+        if not same:
+            raise InputError(
+                f"{results}: holds a grid of another default schedule; give another --results, "
+                "or --force to start again"
+            )
+        done = saved.get("cells", {})
+    task = progress.add_task("bench: grid", total=len(cells)) if progress else None
+    for cell in cells:
+        name = _cell_name(*cell)
+        if name not in done:
+            done[name] = grid_cell(*cell)
+            write_text(results, json.dumps({"setting": setting, "cells": done}, indent=1))
+        if progress:
+            progress.advance(task)
+    names = [_cell_name(*c) for c in cells]
+    rows = []
+    fronts = {}
+    for shape in {c[0] for c in cells}:
+        mine = [n for n, c in zip(names, cells, strict=True) if c[0] == shape]
+        points = [(done[n]["seconds"], done[n]["max_relative_error"]) for n in mine]
+        fronts.update(dict(zip(mine, pareto_front(points), strict=True)))
+    for name, (shape, width, spp, solver) in zip(names, cells, strict=True):
+        d = done[name]
+        rows.append(
+            [
+                shape,
+                f"{width}x{width * 3 // 4}",
+                "16, 64" if solver == "tutorial" else str(spp),
+                solver,
+                f"{d['seconds']:.1f}",
+                str(d["renders"]),
+                f"{100 * d['max_relative_error']:.2f} %",
+                f"{100 * d['held_out_rmse']:.2f} %",
+                "yes" if fronts[name] else "",
+            ]
+        )
+    if plot is not None:
+        _plot_grid(cells, names, done, fronts, plot)
+    return Table(
+        title="Bench grid: resolution x spp x solver (3 views fitted, 1 held out)",
+        columns=[
+            "shape",
+            "size",
+            "spp",
+            "solver",
+            "wall s",
+            "renders",
+            "max rel. error",
+            "held-out RMSE",
+            "Pareto front",
+        ],
+        rows=rows,
+        notes=[
+            "adam: 150 steps lr 0.05, last half averaged; lm: 10 steps, Jacobian decorrelated at "
+            "the cell's spp; bfgs: 30 steps, one seed; default: the default schedule with its "
+            "last phase at the cell's spp; tutorial: Mitsuba's Adam on raw values, 200 x 16 spp "
+            "lr 0.05 + 100 x 64 spp lr 0.01, seeds i and i + 1000003",
+            "wall s: the fit after an untimed one-step warm-up (kernels compiled), the "
+            "uncertainty included for layerfit's solvers; renders: per-view passes (primal, "
+            "adjoint, forward-mode columns); max rel. error: over pigment channels, alpha and "
+            "ior; held-out RMSE: a fourth view at 256 spp, relative to its mean",
+            f"start {json.dumps(_start_values())}; truth: the default job's blue glaze, "
+            "alpha 0.1, ior 1.5",
+            machine(),
+        ],
+    )
+
+
+def _start_values() -> dict:
+    from .. import recovery
+
+    return recovery.START
+
+
+def _plot_grid(cells, names, done, fronts, out: Path) -> None:
+    from ..output.figures import pyplot, save_figure
+
+    plt = pyplot()
+    shapes = sorted({c[0] for c in cells})
+    fig, axes = plt.subplots(1, len(shapes), figsize=(6.5 * len(shapes), 5), squeeze=False)
+    markers = {"adam": "o", "lm": "s", "bfgs": "^", "default": "*", "tutorial": "X"}
+    for ax, shape in zip(axes[0], shapes, strict=True):
+        for name, (s, width, spp, solver) in zip(names, cells, strict=True):
+            if s != shape:
+                continue
+            d = done[name]
+            ax.scatter(
+                d["seconds"],
+                max(d["max_relative_error"], 1e-5),
+                marker=markers[solver],
+                s=120 if solver in ("default", "tutorial") else 50,
+                edgecolors="black" if fronts[name] else "none",
+                label=solver,
+            )
+            ax.annotate(
+                f"{width}/{spp or '16+64'}",
+                (d["seconds"], d["max_relative_error"]),
+                fontsize=7,
+                xytext=(3, 3),
+                textcoords="offset points",
+            )
+        front = sorted(
+            (done[n]["seconds"], done[n]["max_relative_error"])
+            for n, c in zip(names, cells, strict=True)
+            if c[0] == shape and fronts[n]
+        )
+        ax.step(*zip(*front, strict=True), where="post", color="grey", lw=1)
+        ax.set(
+            xscale="log",
+            yscale="log",
+            xlabel="wall time, s",
+            ylabel="max relative error",
+            title=f"{shape}: time vs error (outlined: Pareto front; label: width/spp)",
+        )
+        handles, labels = ax.get_legend_handles_labels()
+        unique = dict(zip(labels, handles, strict=True))
+        ax.legend(unique.values(), unique.keys())
+    fig.tight_layout()
+    save_figure(fig, out)

@@ -18,6 +18,11 @@ MAX_UNCERTAINTY_PARAMS = 64
 CROSS_SEED_OFFSET = 0xC2055
 
 
+#: A coordinate whose share of an undetermined direction (its unit eigenvector's component)
+#: exceeds this is undetermined; below it, the direction is another parameters' trade.
+UNDETERMINED_LOADING = 0.1
+
+
 def _cross(a: np.ndarray, b: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
     """`(a^T W b + b^T W a) / 2`, W = diag(weight): unbiased for `E[a]^T W E[a]` when a and b
     are independent estimates of one matrix."""
@@ -28,12 +33,13 @@ def _cross(a: np.ndarray, b: np.ndarray, weight: np.ndarray | None = None) -> np
 
 def _inverse_determined(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The inverse of a symmetric matrix on the span of its clearly positive eigenvalues (above
-    1e-9 of the largest), and which coordinates load on a direction that is not (undetermined)."""
+    1e-9 of the largest), and which coordinates load on a direction that is not by more than
+    `UNDETERMINED_LOADING` (undetermined)."""
     values, vectors = np.linalg.eigh(h)
     floor = 1e-9 * max(float(np.max(np.abs(values))), 1e-300)
     good = values > floor
     inverse = (vectors[:, good] / values[good]) @ vectors[:, good].T
-    undetermined = np.abs(vectors[:, ~good]).max(axis=1, initial=0.0) > 1e-6
+    undetermined = np.abs(vectors[:, ~good]).max(axis=1, initial=0.0) > UNDETERMINED_LOADING
     return inverse, undetermined
 
 
