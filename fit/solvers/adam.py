@@ -11,7 +11,7 @@ import optax
 import optimistix as optx
 from pydantic import Field, PositiveFloat
 
-from .base import AbstractSolver, Options, Outcome, PhaseReport, Result
+from .base import AbstractSolver, Options, Outcome, PhaseReport, Result, tail_variance
 from .problem import residuals
 
 
@@ -135,7 +135,9 @@ class Adam(AbstractSolver):
             outcome = Outcome.STEP_LIMIT
             message = f"{rejected} of {steps} steps rejected as non-finite" if rejected else ""
         report = PhaseReport(self.name, outcome, steps, rejected, message, final)
-        return Result(problem.values(u), u, final, steps, history, [report])
+        out = Result(problem.values(u), u, final, steps, history, [report])
+        out.tail_variance = tail_variance(tail)
+        return out
 
 
 def _geometric(lr: float, decay: float, count):

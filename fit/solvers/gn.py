@@ -9,7 +9,7 @@ import numpy as np
 from pydantic import Field, PositiveFloat, PositiveInt
 
 from .adam import _log_gains
-from .base import AbstractSolver, Options, Outcome, PhaseReport, Result
+from .base import AbstractSolver, Options, Outcome, PhaseReport, Result, tail_variance
 from .problem import residuals
 from .uncertainty import linearised
 
@@ -143,7 +143,9 @@ class GaussNewton(AbstractSolver):
             outcome = Outcome.STEP_LIMIT
             message = f"{rejected} of {steps} steps rejected as non-finite" if rejected else ""
         report = PhaseReport(self.name, outcome, steps, rejected, message, final)
-        return Result(problem.values(u), u, final, steps, history, [report])
+        out = Result(problem.values(u), u, final, steps, history, [report])
+        out.tail_variance = tail_variance(tail)
+        return out
 
     @staticmethod
     def _jacobian(problem, u, options, seed, downscale) -> np.ndarray:

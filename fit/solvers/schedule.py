@@ -203,6 +203,10 @@ def run_schedule(
     result.steps, result.history, result.phase_ends, result.reports = steps, history, ends, reports
     if len(u) <= MAX_UNCERTAINTY_PARAMS:
         result.std, result.correlation, result.poorly_determined = uncertainty(
-            problem, np.asarray(u), uncertainty_spp, seed + len(phases)
+            problem,
+            np.asarray(u),
+            uncertainty_spp,
+            seed + len(phases),
+            extra_variance=result.tail_variance,
         )
     return result

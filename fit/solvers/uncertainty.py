@@ -66,6 +66,7 @@ def uncertainty(
     seed: int = 0,
     threshold: float = 0.1,
     downscale: int = 1,
+    extra_variance: np.ndarray | None = None,
 ) -> tuple[dict, np.ndarray, list[str]]:
     """Gauss-Newton covariance at the solver's vector `u` in its sandwich form,
     `H^-1 J^T diag(r^2) J H^-1 * N / (N - P)` with `H = J^T J` (J, r: the weighted Jacobian and
@@ -83,7 +84,8 @@ def uncertainty(
     product `(J1^T J2 + J2^T J1) / 2`, whose expectation is the noise-free one. A direction
     whose cross curvature is not positive (its noise larger than its signal) is undetermined:
     its standard deviation is reported as infinite. The meat comes from the two renders' mean
-    Jacobian and residual (a sum of squares: noise can only widen it).
+    Jacobian and residual (a sum of squares: noise can only widen it). `extra_variance` (per
+    solver coordinate: the solver's own Monte Carlo error, `Result.tail_variance`) is added.
 
     Returns per-parameter standard deviations, the correlation matrix, and the parameters whose
     standard deviation exceeds `threshold` of their range (of their value, for gains and emitter
@@ -108,6 +110,8 @@ def uncertainty(
     cov = n_obs / max(n_obs - jac1.shape[1], 1) * bread @ meat @ bread
     cov[undetermined, :] = cov[:, undetermined] = 0.0
     cov[undetermined, undetermined] = np.inf
+    if extra_variance is not None:
+        cov[np.diag_indices_from(cov)] += np.asarray(extra_variance, np.float64)
     cov = cov * np.outer(dxdu, dxdu)
     std_flat = np.sqrt(np.clip(np.diag(cov), 0, None))
     with np.errstate(invalid="ignore"):  # inf / inf where undetermined: no correlation known
