@@ -213,8 +213,9 @@ def bench(
         str, typer.Option(help="--only recovery: each view's WIDTHxHEIGHT.")
     ] = "160x120",
     shapes: Annotated[
-        str, typer.Option(help="--only recovery, grid: comma-separated shapes (sphere, cup).")
-    ] = "sphere,cup",
+        str,
+        typer.Option(help="--only recovery, grid: comma-separated shapes (sphere, torus, cup)."),
+    ] = "sphere,torus",
     widths: Annotated[
         str, typer.Option(help="--only grid: comma-separated image widths (height: 3/4 of it).")
     ] = "64,128,256",
@@ -253,6 +254,8 @@ def bench(
         else None
     )
     results = results or Path(f"bench-{only}.json")
+    if results.is_dir():
+        raise _fail(f"--results {results}: is a folder; give a JSON file name", 2)
     try:
         if out is not None:
             check_output(out, "--out", force=force, inputs=[fit_config])
@@ -291,10 +294,10 @@ def bench(
                 from .recovery import sweep
 
                 cases = sweep(tuple(shape_list))
-                tables.append(recovery_table(cases, width, height, results, bar, force))
+                tables.append(recovery_table(cases, width, height, results, bar))
             if only == "grid":
                 cells = grid_cells(tuple(shape_list), _widths(widths))
-                tables.append(grid_table(cells, results, bar, force, plot))
+                tables.append(grid_table(cells, results, bar, plot=plot))
                 console.print(f"wrote {plot}", markup=False)
         except (InputError, ValueError) as err:
             raise _fail(err, 2) from None

@@ -588,12 +588,12 @@ def recovery_table(
             same = saved.get("setting") == json.loads(json.dumps(setting))
         except (OSError, ValueError, AttributeError):
             raise InputError(
-                f"{results}: not a recovery results file; give another --results or --force"
+                f"{results}: not a recovery results file; give another --results"
             ) from None
         if not same:
             raise InputError(
                 f"{results}: holds a sweep of another size, schedule or start; give another "
-                "--results, or --force to start again"
+                "--results, or delete it to start again"
             )
         done = saved.get("cases", {})
     task = progress.add_task("bench: recovery", total=len(cases)) if progress else None
@@ -695,8 +695,9 @@ def tutorial_loop(problem, start: dict) -> tuple[float, dict, int]:
 GRID_WIDTHS = (64, 128, 256)
 GRID_SPPS = (4, 16, 64)
 GRID_SOLVERS = ("adam", "lm", "bfgs", "default")
-#: The cup's diagonal subset: (width, spp) pairs, each with every solver.
-CUP_DIAGONAL = ((64, 4), (128, 16), (256, 64))
+#: The diagonal subset of other shapes (the cup's, in the issue): (width, spp) pairs, each with
+#: every solver.
+DIAGONAL = ((64, 4), (128, 16), (256, 64))
 
 
 def grid_schedule(solver: str, spp: int) -> tuple:
@@ -723,16 +724,16 @@ def grid_cells(
     shapes=("sphere", "cup"), widths: tuple[int, ...] = GRID_WIDTHS
 ) -> list[tuple[str, int, int, str]]:
     """(shape, width, spp, solver) of every cell: the full grid on the sphere, the diagonal on
-    the cup (its pairs whose width is among `widths`), and the tutorial loop (its own spp) at
-    each sphere width."""
+    other shapes (its pairs whose width is among `widths`), and the tutorial loop (its own spp)
+    at each sphere width."""
     cells = []
     if "sphere" in shapes:
         for width in widths:
             cells += [("sphere", width, s, v) for s in GRID_SPPS for v in GRID_SOLVERS]
             cells.append(("sphere", width, 0, "tutorial"))
-    if "cup" in shapes:
-        pairs = [(w, s) for w, s in CUP_DIAGONAL if w in widths]
-        cells += [("cup", w, s, v) for w, s in pairs for v in GRID_SOLVERS]
+    for shape in [s for s in shapes if s != "sphere"]:
+        pairs = [(w, s) for w, s in DIAGONAL if w in widths]
+        cells += [(shape, w, s, v) for w, s in pairs for v in GRID_SOLVERS]
     return cells
 
 
@@ -870,12 +871,12 @@ def grid_table(
             same = saved.get("setting") == setting
         except (OSError, ValueError, AttributeError):
             raise InputError(
-                f"{results}: not a grid results file; give another --results or --force"
+                f"{results}: not a grid results file; give another --results"
             ) from None
         if not same:
             raise InputError(
                 f"{results}: holds a grid of another default schedule; give another --results, "
-                "or --force to start again"
+                "or delete it to start again"
             )
         done = saved.get("cells", {})
     task = progress.add_task("bench: grid", total=len(cells)) if progress else None
