@@ -242,12 +242,16 @@ def bench(
     from captures.files import check_output, write_text
 
     if only not in (None, "bsdf", "cup", "fit", "long", "recovery", "grid"):
-        raise _fail(f"--only {only!r}: choose bsdf, cup, fit, long, recovery or grid", 2)
+        raise _fail(
+            f"--only {only!r}: unknown table; choose bsdf, cup, fit, long, recovery or grid", 2
+        )
     if steps < 2:
         raise _fail(f"--steps {steps}: give at least 2", 2)
     width, height, shape_list = (
-        _recovery_options(size, shapes) if only == "recovery" else (0, 0, [])
+        _recovery_options(size, shapes) if only in ("recovery", "grid") else (0, 0, [])
     )
+    if only == "grid":
+        _widths(widths)
     plot = (
         (out.with_suffix(".png") if out else Path(f"bench-{only}.png"))
         if only in ("long", "grid")
@@ -312,7 +316,7 @@ def _widths(text: str) -> tuple[int, ...]:
     """--widths, checked (exit 2 with the fix)."""
     parts = [p.strip() for p in text.split(",") if p.strip()]
     if not parts or not all(p.isdigit() and int(p) >= 16 for p in parts):
-        raise _fail(f"--widths {text!r}: give comma-separated widths, each at least 16", 2)
+        raise _fail(f"--widths {text!r}: not widths; give comma-separated numbers, each >= 16", 2)
     return tuple(int(p) for p in parts)
 
 
@@ -322,11 +326,11 @@ def _recovery_options(size: str, shapes: str) -> tuple[int, int, list[str]]:
 
     parts = size.lower().split("x")
     if len(parts) != 2 or not all(p.isdigit() and int(p) >= 8 for p in parts):
-        raise _fail(f"--size {size!r}: give WIDTHxHEIGHT, each at least 8 (e.g. 160x120)", 2)
+        raise _fail(f"--size {size!r}: not a size; give WIDTHxHEIGHT, each at least 8 (160x120)", 2)
     names = [s.strip() for s in shapes.split(",") if s.strip()]
     unknown = [s for s in names if s not in SHAPES]
     if not names or unknown:
-        raise _fail(f"--shapes {shapes!r}: choose from {', '.join(SHAPES)}", 2)
+        raise _fail(f"--shapes {shapes!r}: unknown shape; choose from {', '.join(SHAPES)}", 2)
     return int(parts[0]), int(parts[1]), names
 
 

@@ -313,8 +313,10 @@ def _summary(cfg, capture, held, start, result, wall, panels, interrupted) -> di
             error = np.asarray(value, float) - np.asarray(truth[key], float)
             errors[key] = error.tolist()
             std = (result.std or {}).get(key)
-            if std is not None:
-                z[key] = (error / np.maximum(np.asarray(std, float), 1e-30)).tolist()
+            if std is not None:  # an undetermined parameter (infinite sd) has no ratio
+                sd = np.asarray(std, float)
+                ratio = np.where(np.isfinite(sd), error / np.maximum(sd, 1e-30), np.nan)
+                z[key] = ratio.tolist()
     return {
         "config": str(cfg.path),
         "capture": str(cfg.capture),

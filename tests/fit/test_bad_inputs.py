@@ -450,6 +450,16 @@ CASES: list[Case] = [
         ("--downscale",),
     ),
     ("inspect-downscale-neg", inspect_args(out("cap"), "--downscale", "-2"), ("--downscale",)),
+    ("bench-only", lambda d: ["bench", "--only", "speed"], ("--only", "recovery or grid")),
+    ("bench-size", lambda d: ["bench", "--only", "recovery", "--size", "3x3"], ("--size",)),
+    ("bench-size-text", lambda d: ["bench", "--only", "grid", "--size", "big"], ("--size",)),
+    ("bench-shapes", lambda d: ["bench", "--only", "recovery", "--shapes", "cube"], ("--shapes",)),
+    ("bench-widths", lambda d: ["bench", "--only", "grid", "--widths", "64,x"], ("--widths",)),
+    (
+        "bench-results-folder",
+        lambda d: ["bench", "--only", "recovery", "--results", d],
+        ("--results", "folder"),
+    ),
     (
         "inspect-sheet-manifest",
         inspect_args(out("cap"), "--sheet", out("cap/capture.toml")),
