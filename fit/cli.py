@@ -210,7 +210,7 @@ def bench(
     ] = Path("configs/peer-sphere.toml"),
     steps: Annotated[int, typer.Option(help="--only long: Adam steps of the long run.")] = 1000,
     size: Annotated[
-        str, typer.Option(help="--only recovery: each view's WIDTHxHEIGHT.")
+        str, typer.Option(help="--only recovery, profile: each view's WIDTHxHEIGHT.")
     ] = "160x120",
     shapes: Annotated[
         str,
@@ -241,14 +241,16 @@ def bench(
     memory per step over a long Adam run, plotted to a PNG beside --out (or bench-long.png)."""
     from captures.files import check_output, write_text
 
-    if only not in (None, "bsdf", "cup", "fit", "long", "recovery", "grid"):
+    if only not in (None, "bsdf", "cup", "fit", "long", "recovery", "grid", "profile"):
         raise _fail(
-            f"--only {only!r}: unknown table; choose bsdf, cup, fit, long, recovery or grid", 2
+            f"--only {only!r}: unknown table; choose bsdf, cup, fit, long, recovery, grid or "
+            "profile",
+            2,
         )
     if steps < 2:
         raise _fail(f"--steps {steps}: give at least 2", 2)
     width, height, shape_list = (
-        _recovery_options(size, shapes) if only in ("recovery", "grid") else (0, 0, [])
+        _recovery_options(size, shapes) if only in ("recovery", "grid", "profile") else (0, 0, [])
     )
     if only == "grid":
         _widths(widths)
@@ -278,6 +280,7 @@ def bench(
         long_run,
         long_run_table,
         plot_long_run,
+        profile_table,
         recovery_table,
     )
 
@@ -299,6 +302,8 @@ def bench(
 
                 cases = sweep(tuple(shape_list))
                 tables.append(recovery_table(cases, width, height, results, bar))
+            if only == "profile":
+                tables.append(profile_table(width))
             if only == "grid":
                 cells = grid_cells(tuple(shape_list), _widths(widths))
                 tables.append(grid_table(cells, results, bar, plot=plot))
