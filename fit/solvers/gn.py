@@ -8,10 +8,12 @@ import jax.numpy as jnp
 import numpy as np
 from pydantic import Field, PositiveFloat, PositiveInt
 
+from captures.errors import InputError
+
 from .adam import _log_gains
 from .base import AbstractSolver, Options, Outcome, PhaseReport, Result, tail_variance
 from .problem import residuals
-from .uncertainty import linearised
+from .uncertainty import MAX_UNCERTAINTY_PARAMS, linearised
 
 
 class GNOptions(Options):
@@ -63,6 +65,11 @@ class GaussNewton(AbstractSolver):
         resume=None,
         offer=None,
     ) -> Result:
+        if problem.n_material > MAX_UNCERTAINTY_PARAMS:
+            raise InputError(
+                f"solver gn: {problem.n_material} free components (a texture?); its curvature "
+                "renders one forward pass per component: use adam for textures"
+            )
         render = problem.render_fn("reverse", spp, downscale)
         profile = bool(problem.gains and problem.loss == "l2")
         residual = residuals(
