@@ -81,5 +81,5 @@ def test_mask_texture_is_recovered_in_reverse_mode(tmp_path):
     assert np.abs(fitted[band] - truth[band]).mean() < 0.08
     assert np.corrcoef(fitted[band].ravel(), truth[band].ravel())[0, 1] > 0.9
     assert result.std is None  # 256 components: no Jacobian-based uncertainty
-    with pytest.raises(InputError, match="solver gn: 256 free components.*use adam"):
+    with pytest.raises(InputError, match=r"solver gn: 256 free components.*use adam"):
         run_schedule(problem, start, (Phase(solver="gn", steps=2, spp=1),), seed=0)
