@@ -965,7 +965,9 @@ def _plot_grid(cells, names, done, fronts, out: Path) -> None:
     shapes = sorted({c[0] for c in cells})
     fig, axes = plt.subplots(1, len(shapes), figsize=(6.5 * len(shapes), 5), squeeze=False)
     markers = {"adam": "o", "lm": "s", "bfgs": "^", "default": "*", "tutorial": "X"}
-    colours = dict(zip(markers, ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")))
+    colours = dict(
+        zip(markers, ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple"), strict=True)
+    )
     for ax, shape in zip(axes[0], shapes, strict=True):
         for name, (s, width, spp, solver) in zip(names, cells, strict=True):
             if s != shape:
