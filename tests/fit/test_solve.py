@@ -141,6 +141,7 @@ SCHEDULE = (
 )
 
 
+@pytest.mark.slow  # 25 s; the default run fits a recovery case with the default schedule
 def test_schedule_recovers_and_reports_uncertainty(larger):
     """Recovered, with standard deviations that cover the actual errors (the sandwich form:
     the plain Gauss-Newton one was 10-20x too small where Monte Carlo noise gathers)."""
@@ -226,6 +227,7 @@ def test_frozen_renders_equal_unfrozen():
         )
 
 
+@pytest.mark.slow  # 34 s (LM at 256 spp); gains: the Adam and gn tests below in the default run
 def test_per_view_gains_are_recovered():
     """Two views, the second photographed 25 % brighter in red and 10 % darker in green: with
     free gains (the first view's fixed) and a free pigment, LM recovers both.
