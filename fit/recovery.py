@@ -277,14 +277,17 @@ def calibration_rows(outcomes: list[Outcome]) -> list[list[str]]:
         def mark(key, targets=targets, sigmas=sigmas):
             return "" if targets[key] and sigmas[key] else " ✗"
 
+        def sd(key, index=None, o=o):
+            std = np.ravel(o.std[key])[0 if index is None else index]
+            ratio = np.ravel(o.sigmas[key])[0 if index is None else index]
+            return "undetermined" if not np.isfinite(std) else f"{ratio:.1f} sd"
+
         rows.append(
             [
                 o.case.name,
-                f"{100 * alpha:+.1f} % ({max(o.sigmas['glaze.roughness'], 0):.1f} sd)"
-                + mark("glaze.roughness"),
-                f"{o.errors['glaze.ior']:+.4f} ({o.sigmas['glaze.ior']:.1f} sd)"
-                + mark("glaze.ior"),
-                f"{o.errors['glaze.pigment'][pig]:+.4f} ({o.sigmas['glaze.pigment'][pig]:.1f} sd)"
+                f"{100 * alpha:+.1f} % ({sd('glaze.roughness')})" + mark("glaze.roughness"),
+                f"{o.errors['glaze.ior']:+.4f} ({sd('glaze.ior')})" + mark("glaze.ior"),
+                f"{o.errors['glaze.pigment'][pig]:+.4f} ({sd('glaze.pigment', pig)})"
                 + mark("glaze.pigment"),
                 f"{o.seconds:.0f}",
                 "yes" if o.passed() else "no",

@@ -31,7 +31,7 @@ def test_full_sweep_is_calibrated():
     """The whole sweep at 160x120 (about 25 minutes on 2 cores): at least 90 % of the cases
     have every error within 3 reported sd (the honest-uncertainty half of the issue's
     calibration; which cases meet the accuracy targets is the bench's table, BENCHMARKS)."""
-    outcomes = [recovery.recover(case) for case in recovery.sweep()]
+    outcomes = [recovery.recover(case, width=160, height=120) for case in recovery.sweep()]
     covered = [all(o.within_sigmas().values()) for o in outcomes]
     misses = [o.case.name for o, ok in zip(outcomes, covered, strict=True) if not ok]
     assert sum(covered) >= 0.9 * len(outcomes), misses
