@@ -556,6 +556,28 @@ def plot_long_run(run: LongRun, out: Path) -> Path:
 # Recovery over the parameter range (issue 14) -----------------------------------------------------
 
 
+def _resumed(results: Path, setting: dict, entries: str, other: str, replace: bool) -> dict:
+    """The finished entries of a resumable results file (JSON: its `setting` and `entries`);
+    none when it does not exist or with `replace`. A file that is not such JSON, or holds
+    `other` (another setting), is refused: nothing a user has is overwritten."""
+    import json
+
+    from captures.errors import InputError
+
+    if not results.exists() or replace:
+        return {}
+    try:
+        saved = json.loads(results.read_text())
+        same = saved.get("setting") == json.loads(json.dumps(setting))
+    except (OSError, ValueError, AttributeError):
+        raise InputError(f"{results}: not a bench results file; give another --results") from None
+    if not same:
+        raise InputError(
+            f"{results}: holds {other}; give another --results, or delete it to start again"
+        )
+    return saved.get(entries, {})
+
+
 def recovery_table(
     cases: list,
     width: int,
@@ -571,7 +593,6 @@ def recovery_table(
     parameter's error and error/sigma."""
     import json
 
-    from captures.errors import InputError
     from captures.files import write_text
 
     from .. import recovery
@@ -581,21 +602,9 @@ def recovery_table(
         f"{p.solver} {p.steps} x {p.spp} spp 1/{p.downscale}" for p in DEFAULT_SCHEDULE
     )
     setting = {"size": [width, height], "schedule": schedule, "start": recovery.START}
-    done: dict = {}
-    if results.exists() and not replace:
-        try:
-            saved = json.loads(results.read_text())
-            same = saved.get("setting") == json.loads(json.dumps(setting))
-        except (OSError, ValueError, AttributeError):
-            raise InputError(
-                f"{results}: not a recovery results file; give another --results"
-            ) from None
-        if not same:
-            raise InputError(
-                f"{results}: holds a sweep of another size, schedule or start; give another "
-                "--results, or delete it to start again"
-            )
-        done = saved.get("cases", {})
+    done = _resumed(
+        results, setting, "cases", "a sweep of another size, schedule or start", replace
+    )
     task = progress.add_task("bench: recovery", total=len(cases)) if progress else None
     outcomes = []
     for case in cases:
@@ -642,7 +651,7 @@ TUTORIAL = ((200, 16, 0.05), (100, 64, 0.01))
 TUTORIAL_GRAD_SEED = 1_000_003
 
 
-def tutorial_loop(problem, start: dict) -> tuple[float, dict, int]:
+def tutorial_loop(problem, start: dict, stages=TUTORIAL) -> tuple[float, dict, int]:
     """The loop of a Mitsuba tutorial, natively (no JAX, no transforms, no freezing): one scene
     per view, `mi.ad.Adam` on the raw parameter values, `dr.backward` of the weighted squared
     error through `mi.render` with a decorrelated `seed_grad`, clipped to bounds. Returns its
@@ -665,11 +674,11 @@ def tutorial_loop(problem, start: dict) -> tuple[float, dict, int]:
         offset += size
     keys = [MATERIAL_PREFIX + f.traverse for f in problem.free]
     began = time.perf_counter()
-    opt = mi.ad.Adam(lr=TUTORIAL[0][2])
+    opt = mi.ad.Adam(lr=stages[0][2])
     for f, key in zip(problem.free, keys, strict=True):
         opt[key] = type(params[0][key])(*np.ravel(start[f.key]).tolist())
     it, renders = 0, 0
-    for iterations, spp, lr in TUTORIAL:
+    for iterations, spp, lr in stages:
         opt.set_learning_rate(lr)
         for _ in range(iterations):
             loss = mi.Float(0.0)
@@ -787,12 +796,7 @@ def grid_cell(shape: str, width: int, spp: int, solver: str) -> dict:
 
     if solver == "tutorial":
         warm = problem()
-        saved = globals()["TUTORIAL"]
-        globals()["TUTORIAL"] = ((1, 16, 0.05), (1, 64, 0.01))
-        try:
-            tutorial_loop(warm, recovery.START)
-        finally:
-            globals()["TUTORIAL"] = saved
+        tutorial_loop(warm, recovery.START, ((1, 16, 0.05), (1, 64, 0.01)))
         seconds, values, renders = tutorial_loop(problem(), recovery.START)
     else:
         schedule = grid_schedule(solver, spp)
@@ -869,27 +873,12 @@ def grid_table(
     against max relative error per shape (the front marked)."""
     import json
 
-    from captures.errors import InputError
     from captures.files import write_text
 
     from ..solvers import DEFAULT_SCHEDULE
 
     setting = {"default": [p.describe() + f" x {p.steps}" for p in DEFAULT_SCHEDULE]}
-    done: dict = {}
-    if results.exists() and not replace:
-        try:
-            saved = json.loads(results.read_text())
-            same = saved.get("setting") == setting
-        except (OSError, ValueError, AttributeError):
-            raise InputError(
-                f"{results}: not a grid results file; give another --results"
-            ) from None
-        if not same:
-            raise InputError(
-                f"{results}: holds a grid of another default schedule; give another --results, "
-                "or delete it to start again"
-            )
-        done = saved.get("cells", {})
+    done = _resumed(results, setting, "cells", "a grid of another default schedule", replace)
     task = progress.add_task("bench: grid", total=len(cells)) if progress else None
     for cell in cells:
         name = _cell_name(*cell)

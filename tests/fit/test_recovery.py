@@ -59,7 +59,7 @@ def test_calibration_table_resumes_and_refuses_a_foreign_file(tmp_path, monkeypa
     with pytest.raises(ValueError, match="another size"):
         bench.recovery_table([case], 32, 24, results)
     results.write_text("not json")
-    with pytest.raises(ValueError, match="not a recovery results file"):
+    with pytest.raises(ValueError, match="not a bench results file"):
         bench.recovery_table([case], 16, 12, results)
     bench.recovery_table([case], 16, 12, results, replace=True)
     assert json.loads(results.read_text())["setting"]["size"] == [16, 12]
@@ -77,15 +77,15 @@ def test_outcome_scores_targets_and_sigmas():
     assert far.within_targets()["glaze.ior"] and not far.passed()
 
 
-def test_tutorial_loop_moves_toward_the_truth(monkeypatch):
+def test_tutorial_loop_moves_toward_the_truth():
     """The bench's native tutorial loop (Mitsuba's Adam on raw values) runs, counts its
     renders, and a short run brings alpha and ior closer to a 48x36 sphere's truth."""
     case = recovery.Case("sphere", roughness=0.1)
     capture = recovery.capture(case, 48, 36, spp=64)
     material = recovery.glaze(recovery.START)
     problem = Problem(capture, material, resolve(material, list(recovery.KEYS)))
-    monkeypatch.setattr(bench, "TUTORIAL", ((20, 4, 0.05), (5, 8, 0.01)))
-    seconds, values, renders = bench.tutorial_loop(problem, recovery.START)
+    stages = ((20, 4, 0.05), (5, 8, 0.01))
+    seconds, values, renders = bench.tutorial_loop(problem, recovery.START, stages)
     assert seconds > 0 and renders == 25 * 2 * 3
     for key in ("glaze.roughness", "glaze.ior"):
         start_error = abs(recovery.START[key] - case.truth()[key])
