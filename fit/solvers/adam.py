@@ -123,21 +123,28 @@ class Adam(AbstractSolver):
                         **({"gain_sums": gain_sums} if gain_sums is not None else {}),
                     }
                 )
-        if tail:
-            u = jnp.asarray(np.mean(tail, axis=0))
-            if gain_sums is not None:  # the gains of the whole tail's sums, not a mean of ratios
-                u = u.at[n:].set(_log_gains(gain_sums))
-        u = np.asarray(u)
-        final = history[-1] if history else float("nan")
-        if steps and rejected == steps:
-            outcome, message = Outcome.DIVERGED, "every step was non-finite; kept the start"
-        else:
-            outcome = Outcome.STEP_LIMIT
-            message = f"{rejected} of {steps} steps rejected as non-finite" if rejected else ""
-        report = PhaseReport(self.name, outcome, steps, rejected, message, final)
-        out = Result(problem.values(u), u, final, steps, history, [report])
-        out.tail_variance = tail_variance(tail)
-        return out
+        return averaged_result(self.name, problem, u, tail, gain_sums, history, steps, rejected)
+
+
+def averaged_result(name, problem, u, tail, gain_sums, history, steps, rejected) -> Result:
+    """A fresh-seed phase's `Result`: the mean of its averaged tail (else the last iterate `u`),
+    its gains from the whole tail's least-squares sums (not a mean of ratios), the tail's own
+    Monte Carlo variance, and its report (`diverged` when every step was rejected)."""
+    u = np.asarray(u, np.float32)
+    if tail:
+        u = np.mean(tail, axis=0).astype(np.float32)
+        if gain_sums is not None:
+            u[problem.n_material :] = _log_gains(gain_sums)
+    final = history[-1] if history else float("nan")
+    if steps and rejected == steps:
+        outcome, message = Outcome.DIVERGED, "every step was non-finite; kept the start"
+    else:
+        outcome = Outcome.STEP_LIMIT
+        message = f"{rejected} of {steps} steps rejected as non-finite" if rejected else ""
+    report = PhaseReport(name, outcome, steps, rejected, message, final)
+    out = Result(problem.values(u), u, final, steps, history, [report])
+    out.tail_variance = tail_variance(tail)
+    return out
 
 
 def _geometric(lr: float, decay: float, count):

@@ -10,8 +10,8 @@ from pydantic import Field, PositiveFloat, PositiveInt
 
 from captures.errors import InputError
 
-from .adam import _log_gains
-from .base import AbstractSolver, Options, Outcome, PhaseReport, Result, tail_variance
+from .adam import _log_gains, averaged_result
+from .base import AbstractSolver, Options, Result
 from .problem import residuals
 from .uncertainty import MAX_UNCERTAINTY_PARAMS, linearised
 
@@ -139,20 +139,7 @@ class GaussNewton(AbstractSolver):
                         **({"gain_sums": gain_sums} if gain_sums is not None else {}),
                     }
                 )
-        if tail:
-            u = np.mean(tail, axis=0).astype(np.float32)
-            if gain_sums is not None:
-                u[n:] = _log_gains(gain_sums)
-        final = history[-1] if history else float("nan")
-        if steps and rejected == steps:
-            outcome, message = Outcome.DIVERGED, "every step was non-finite; kept the start"
-        else:
-            outcome = Outcome.STEP_LIMIT
-            message = f"{rejected} of {steps} steps rejected as non-finite" if rejected else ""
-        report = PhaseReport(self.name, outcome, steps, rejected, message, final)
-        out = Result(problem.values(u), u, final, steps, history, [report])
-        out.tail_variance = tail_variance(tail)
-        return out
+        return averaged_result(self.name, problem, u, tail, gain_sums, history, steps, rejected)
 
     @staticmethod
     def _jacobian(problem, u, options, seed, downscale) -> np.ndarray:
