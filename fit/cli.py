@@ -201,8 +201,8 @@ def bench(
     only: Annotated[
         str | None,
         typer.Option(
-            help="Run one table: bsdf, cup, fit, long or recovery (fit, long, recovery: not run "
-            "by default)."
+            help="Run one table: bsdf, cup, fit, long, recovery, grid or profile (the last five "
+            "take minutes to hours: not run by default)."
         ),
     ] = None,
     fit_config: Annotated[

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from captures import Scene, parse_scene
 from captures.model import NonNegativeInt, PositiveFloat, PositiveInt, StrictModel, parse_model
@@ -35,8 +35,17 @@ class FitSettings(StrictModel):
     """The parameter keys the fit moves, e.g. ["glaze.roughness", "lime.mask.threshold"]."""
     seed: NonNegativeInt = 0
     """Seed of the renders (phase k uses seed + k)."""
-    gains: bool = False
-    """A free RGB gain per view but the first (unknown exposure / white balance)."""
+    gains: bool | Literal["exposure"] = False
+    """A free gain per view but the first: true, an RGB gain (unknown exposure and white
+    balance); "exposure", one grey gain (one camera, its white balance fixed)."""
+
+    @field_validator("gains", mode="before")
+    @classmethod
+    def _gains(cls, value):
+        if value is True or value is False or value == "exposure":
+            return value
+        raise ValueError(f'got {value!r}; should be true, false or "exposure"')
+
     loss: Literal["l2", "huber", "cauchy"] = "l2"
     """How a pixel's difference counts: l2, or robust huber / cauchy (biased under noise)."""
     loss_scale: PositiveFloat | None = None

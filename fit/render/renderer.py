@@ -62,6 +62,22 @@ def _reverse_pass(scene, grad_in, seed, spp: int, keys: tuple, x_fov: float | No
     return grads
 
 
+def _forward_pass(scene, tangents: list, seed, spp: int, keys: tuple, x_fov: float | None = None):
+    """The forward-mode derivative of the render along `tangents` (one per parameter at `keys`;
+    a frozen function's body: Dr.Jit inputs only, the AD state set and cleared inside)."""
+    _rebuild_sensor(scene, x_fov)
+    params = mi.traverse(scene)
+    for key in keys:
+        dr.enable_grad(params[key])
+    params.update()  # values the plugins derive in `parameters_changed` carry derivatives
+    for key, tangent in zip(keys, tangents, strict=True):
+        dr.set_grad(params[key], tangent)
+    out = scene.integrator().render_forward(scene, params, seed=seed, spp=spp)
+    for key in keys:
+        dr.disable_grad(params[key])
+    return out
+
+
 @contextmanager
 def _no_gc():
     """Keep Python's cyclic garbage collector from running during a frozen call. Freeing a loaded
@@ -144,6 +160,7 @@ class _Group:
         # module functions, not bound methods: a Renderer holding its own bound methods is a
         # reference cycle, freed only by the cyclic collector, possibly inside a later recording
         self.primal, self.reverse = wrap(_primal), wrap(_reverse_pass)
+        self.forward = wrap(_forward_pass)
         self.fov = _sensor_fov(self.scene)
 
 
@@ -295,22 +312,23 @@ class Renderer:
         jac = np.zeros((self.size, self.n_params), np.float32)
         offsets = self._offsets()
         for g, group in enumerate(self.groups):
-            params, column = group.params, 0
+            self._set(group, values)
+            keys = tuple(k for ks in group.targets for k in ks)
+            seed_g = mi.UInt32(int(j_seed) + 7919 * g)
+            column = 0
             for f in self.free:
                 for c in range(f.size):
-                    self._set(group, values, grad=True)
                     # every parameter gets a tangent (zero but this column's): one AD graph, one
                     # kernel for all columns (a tangent on one parameter alone is a new kernel,
                     # ~10 s of LLVM each for the cup)
-                    for other, other_keys in zip(self.free, group.targets, strict=True):
-                        for key in other_keys:
-                            on = c if other is f else None
-                            dr.set_grad(params[key], self._tangent(group, other, key, on))
-                    out = group.scene.integrator().render_forward(
-                        group.scene, params, seed=int(j_seed) + 7919 * g, spp=j_spp
-                    )
+                    tangents = [
+                        self._tangent(group, other, key, c if other is f else None)
+                        for other, other_keys in zip(self.free, group.targets, strict=True)
+                        for key in other_keys
+                    ]
+                    with _no_gc():
+                        out = group.forward(group.scene, tangents, seed_g, j_spp, keys, group.fov)
                     for v, part in zip(group.views, self._split(group, out), strict=True):
                         jac[offsets[v] : offsets[v + 1], column] = part
                     column += 1
-            self._set(group, values)  # drop the AD state
         return image, jac

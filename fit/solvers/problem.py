@@ -22,9 +22,11 @@ class Problem:
     """What a fit compares: the capture's views against renders of `material` with `free`
     parameters, weighted by the validity weights.
 
-    With `gains`, every view but the first has a free RGB gain (photos rarely share an exact
+    With `gains`, every view but the first has a free gain (photos rarely share an exact
     exposure or white balance; the first stays fixed to remove the albedo/gain ambiguity), solved
-    as its logarithm and reported as `gain.<view>`.
+    as its logarithm and reported as `gain.<view>`: an RGB gain (`True`: exposure and white
+    balance), or one grey gain per view (`"exposure"`: one camera's fixed white balance, where
+    free RGB gains would let every colour trade against three of them).
 
     `loss` shapes each pixel's difference d = render - photo before weighting: "l2" (d itself, the
     default: unbiased under Monte Carlo noise), or robust ones that count differences beyond
@@ -35,7 +37,7 @@ class Problem:
     capture: Capture
     material: Material
     free: list[Free]
-    gains: bool = False
+    gains: bool | str = False
     loss: str = "l2"
     loss_scale: float | None = None
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
@@ -43,6 +45,8 @@ class Problem:
     def __post_init__(self):
         if self.loss not in LOSSES:
             raise ValueError(f"loss {self.loss!r}; choose one of {', '.join(LOSSES)}")
+        if self.gains not in (False, True, "exposure"):
+            raise ValueError(f"gains {self.gains!r}; choose false, true or 'exposure'")
 
     def at(self, downscale: int) -> Capture:
         """The capture area-averaged by `downscale` (built once)."""
@@ -91,27 +95,37 @@ class Problem:
     def gain_views(self) -> list[int]:
         return list(range(1, len(self.capture.views))) if self.gains else []
 
+    @property
+    def gain_channels(self) -> int:
+        """Components of each view's gain: 3 (RGB) or 1 (exposure)."""
+        return 1 if self.gains == "exposure" else 3
+
     def unconstrained(self, start: dict):
         """The solver's starting vector: material parameters, then log-gains (0: gain 1)."""
         return np.concatenate(
-            [to_unconstrained(self.free, start), np.zeros(3 * len(self.gain_views))]
+            [
+                to_unconstrained(self.free, start),
+                np.zeros(self.gain_channels * len(self.gain_views)),
+            ]
         ).astype(np.float32)
 
     def values(self, u) -> dict:
         u = np.asarray(u, dtype=np.float64)
         out = as_dict(self.free, to_physical(self.free, u[: self.n_material]))
+        c, n = self.gain_channels, self.n_material
         for i, view in enumerate(self.gain_views):
-            start = self.n_material + 3 * i
-            out[f"gain.{self.capture.views[view].name}"] = np.exp(u[start : start + 3]).tolist()
+            gain = np.exp(u[n + c * i : n + c * (i + 1)])
+            name = f"gain.{self.capture.views[view].name}"
+            out[name] = gain.tolist() if c > 1 else float(gain[0])
         return out
 
     def gain_multipliers(self, log_gains, downscale: int = 1):
         """Per-element multipliers of the flattened views (the first view's are 1)."""
         views = self.at(downscale).views
-        parts = [jnp.ones(views[0].image.size, jnp.float32)]
+        parts, c = [jnp.ones(views[0].image.size, jnp.float32)], self.gain_channels
         for i, view in enumerate(self.gain_views):
-            gain = jnp.exp(log_gains[3 * i : 3 * i + 3]).astype(jnp.float32)
-            parts.append(jnp.tile(gain, views[view].image.size // 3))
+            gain = jnp.exp(log_gains[c * i : c * (i + 1)]).astype(jnp.float32)
+            parts.append(jnp.tile(gain, views[view].image.size // c))
         return jnp.concatenate(parts)
 
 
@@ -195,11 +209,11 @@ def residuals(
 
 
 def _gain_segments(problem: Problem, downscale: int) -> tuple[jnp.ndarray, int]:
-    """Each flattened element's gain: 0 for the first view (fixed), 1 + 3 i + channel for the
-    i-th view with a gain."""
-    views = problem.at(downscale).views
+    """Each flattened element's gain: 0 for the first view (fixed), 1 + c i + channel for the
+    i-th view with a gain of c components (channel 0 for a grey gain)."""
+    views, c = problem.at(downscale).views, problem.gain_channels
     parts = [np.zeros(views[0].image.size, np.int32)]
     for i, view in enumerate(problem.gain_views):
         size = views[view].image.size
-        parts.append(1 + 3 * i + np.arange(size, dtype=np.int32) % 3)
-    return jnp.asarray(np.concatenate(parts)), 1 + 3 * len(problem.gain_views)
+        parts.append(1 + c * i + np.arange(size, dtype=np.int32) % c)
+    return jnp.asarray(np.concatenate(parts)), 1 + c * len(problem.gain_views)

@@ -125,7 +125,7 @@ def uncertainty(
         None if f.spec.transform == "log_sigmoid" else f.spec.upper - f.spec.lower
         for f in problem.free
     ]
-    sizes = [f.size for f in problem.free] + [3] * len(problem.gain_views)
+    sizes = [f.size for f in problem.free] + [problem.gain_channels] * len(problem.gain_views)
     for key, size, scale in zip(
         values, sizes, scales + [None] * len(problem.gain_views), strict=True
     ):

@@ -802,6 +802,7 @@ CASES: list[Case] = [
         ("fit.toml", "fit.downscale"),
     ),
     ("fit-loss", fit_cfg("[fit]\n", '[fit]\nloss = "l3"\n'), ("fit.toml", "fit.loss")),
+    ("fit-gains", fit_cfg("[fit]\n", '[fit]\ngains = "rgb"\n'), ("fit.toml", "fit.gains")),
     ("fit-solver", fit_cfg('solver = "adam"', 'solver = "newton"'), ("fit.toml", "solver")),
     ("fit-no-free", fit_cfg('free = ["glaze.roughness"]', "free = []"), ("fit.toml", "fit.free")),
     (

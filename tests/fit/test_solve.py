@@ -213,7 +213,8 @@ def two_views(gain=None):
 
 def test_frozen_renders_equal_unfrozen():
     """Frozen functions (one per view) replay what plain calls compute, across views with
-    different cameras, seeds, sample counts and parameter values."""
+    different cameras, seeds, sample counts and parameter values: primal renders, reverse passes
+    and the forward passes of a Jacobian."""
     cfg, capture = two_views()
     free = resolve(cfg.material, KEYS)
     frozen = Renderer(capture, cfg.material, free)
@@ -225,6 +226,10 @@ def test_frozen_renders_equal_unfrozen():
         np.testing.assert_allclose(
             frozen.vjp(x, seed, spp, c), plain.vjp(x, seed, spp, c), rtol=1e-4
         )
+        _, jac_frozen = frozen.jacobian(x, seed, spp, jacobian_spp=2)
+        _, jac_plain = plain.jacobian(x, seed, spp, jacobian_spp=2)
+        assert np.any(jac_frozen != 0, axis=0).all()
+        np.testing.assert_allclose(jac_frozen, jac_plain, rtol=1e-4, atol=1e-6)
 
 
 @pytest.mark.slow  # 34 s (LM at 256 spp); gains: the Adam and gn tests below in the default run
@@ -295,6 +300,34 @@ def test_profiled_gains_are_the_least_squares_solution():
     assert float(jnp.max(jnp.abs(r))) < 1e-5
     grad = jax.grad(lambda u: 0.5 * jnp.sum(residual(u, jnp.int32(0))[0] ** 2))(u + 0.1)
     assert np.all(np.asarray(grad[3:]) == 0)
+
+
+def test_exposure_gains_are_one_grey_gain_per_view():
+    """`gains = "exposure"`: one grey gain per view but the first. The profiled least-squares
+    sums give it exactly for a render that is the photo divided by a known exposure (the three
+    channels pooled), the solver's vector holds one log-gain per view, and the values report it
+    as a number."""
+    from fit.solvers import residuals
+
+    cfg, capture = two_views(np.float32(1.3))
+    free = resolve(cfg.material, ["glaze.pigment"])
+    problem = Problem(capture, cfg.material, free, gains="exposure")
+    target, _ = problem.target()
+    first = capture.views[0].image.size
+    exact = np.concatenate([target[:first], target[first:] / np.float32(1.3)])
+    residual = residuals(
+        problem, lambda x, seed: jnp.asarray(exact) * (1 + 0 * x[0]), profile_gains=True
+    )
+    u = jnp.asarray(problem.unconstrained({"glaze.pigment": [0.3, 0.3, 0.3]}))
+    assert u.shape == (4,)
+    _, (num, den) = residual(u, jnp.int32(0))
+    np.testing.assert_allclose(np.asarray(num) / np.asarray(den), [1.3], rtol=1e-4)
+    u = u.at[3:].set(jnp.log(1.3))
+    r, _ = residual(u, jnp.int32(0))
+    assert float(jnp.max(jnp.abs(r))) < 1e-5
+    assert problem.values(np.asarray(u))["gain.v1"] == pytest.approx(1.3, rel=1e-6)
+    with pytest.raises(ValueError, match="gains 'rgb'"):
+        Problem(capture, cfg.material, free, gains="rgb")
 
 
 def test_independent_gain_render_keeps_value_and_cost(monkeypatch):
