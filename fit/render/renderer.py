@@ -293,7 +293,16 @@ class Renderer:
                     else:
                         grad[i : i + f.size] += np.ravel(d).astype(np.float32)
                 i += f.size
+            self._drop_ad(group, values)
         return grad
+
+    def _drop_ad(self, group: _Group, values: np.ndarray) -> None:
+        """Set the values again without derivatives after a pass that enabled them: unfrozen, a
+        value the plugins derived from a differentiated one (a bitmap's mean) keeps its AD graph
+        in the scene, and a later frozen pass of another Renderer in this process (a Ray worker's
+        next fit) fails on that stale graph (`ad_traverse(): ... outside of the current
+        dr.isolate_grad() scope`)."""
+        self._set(group, values)
 
     def jacobian(
         self, values: np.ndarray, seed: int, spp: int, jacobian_spp: int | None = None
@@ -331,4 +340,5 @@ class Renderer:
                     for v, part in zip(group.views, self._split(group, out), strict=True):
                         jac[offsets[v] : offsets[v + 1], column] = part
                     column += 1
+            self._drop_ad(group, values)
         return image, jac

@@ -15,7 +15,7 @@ from captures.images import write_image
 from captures.scene import Camera
 from fit.config import load_render_config
 from fit.material import build_material, resolve
-from fit.render import render, scene_dict
+from fit.render import Renderer, render, scene_dict
 from fit.solvers import Phase, Problem, run_schedule
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -81,5 +81,10 @@ def test_mask_texture_is_recovered_in_reverse_mode(tmp_path):
     assert np.abs(fitted[band] - truth[band]).mean() < 0.08
     assert np.corrcoef(fitted[band].ravel(), truth[band].ravel())[0, 1] > 0.9
     assert result.std is None  # 256 components: no Jacobian-based uncertainty
+    # the texture's passes (not frozen) left no AD graph behind in its scenes: a frozen pass of
+    # another fit in this process (a Ray worker's next task) failed on it in `ad_traverse()`
+    other = Renderer(target, start_material, resolve(start_material, ["glaze.roughness"]))
+    _, jac = other.jacobian(np.array([0.1], np.float32), 0, 1)
+    assert np.isfinite(jac).all() and np.any(jac != 0)
     with pytest.raises(InputError, match=r"solver gn: 256 free components.*use adam"):
         run_schedule(problem, start, (Phase(solver="gn", steps=2, spp=1),), seed=0)
