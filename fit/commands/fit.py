@@ -230,7 +230,11 @@ def _stop_on_ctrl_c(checkpoint: Checkpoint):
 def _write(
     cfg, out, capture, held, problem, start, result, wall, interrupted=False, starts=None
 ) -> dict:
-    """The run folder's files from a (possibly partial) result (`starts`: a multi-start's)."""
+    """The run folder's files from a (possibly partial) result (`starts`: a multi-start's).
+    Images an earlier run wrote into this folder (`--force`) and this one did not (a view or a
+    fitted texture it no longer has) are removed once the new files are in place; other files
+    are left alone."""
+    before = _outputs(out)
     free = problem.free
     textures = {  # fitted textures as images next to the summary and in the preset
         f.key: np.asarray(result.values[f.key], np.float32).reshape(f.shape)
@@ -256,7 +260,17 @@ def _write(
     write_report(out, summary, panels, masks, title)
     # the summary last: beside no checkpoint, it marks a finished run folder (batches skip those)
     write_text(out / "summary.json", json.dumps(_finite(summary), indent=2, allow_nan=False))
+    for path, inode in before.items():  # every file is written anew (atomic: a new inode)
+        if path.exists() and path.stat().st_ino == inode:
+            path.unlink()
     return summary
+
+
+def _outputs(out: Path) -> dict[Path, int]:
+    """The images a fit writes into its run folder that are there now (report PNGs, texture
+    EXRs), with their inodes."""
+    paths = [*out.glob("report/*.png"), *out.glob("*.exr")]
+    return {p: p.stat().st_ino for p in paths if p.is_file()}
 
 
 def _panels(cfg, capture, held, problem, result) -> list[ViewPanel]:

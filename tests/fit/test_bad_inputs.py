@@ -909,6 +909,19 @@ def test_one_view_fit_writes_valid_json(base, tmp_path, capsys):
 
     summary = json.loads((work / "run" / "summary.json").read_text(), parse_constant=refuse)
     assert summary["truth"]["glaze.roughness"] == 0.0625
+    # --force over it: what the earlier run wrote and this one does not is gone, the user's own
+    # files stay, nothing of this run is missing
+    (work / "run" / "report" / "view-07-gone.png").write_bytes(b"old")
+    (work / "run" / "glaze.mask.texture.exr").write_bytes(b"old")
+    (work / "run" / "notes.txt").write_text("mine")
+    written = sorted(p.name for p in (work / "run").rglob("*"))
+    code, _, stderr = run(["fit", work / "fit.toml", "--out", work / "run", "--force"], capsys)
+    assert code == 0, stderr
+    assert not (work / "run" / "report" / "view-07-gone.png").exists()
+    assert not (work / "run" / "glaze.mask.texture.exr").exists()
+    assert (work / "run" / "notes.txt").read_text() == "mine"
+    expected = [n for n in written if n not in ("view-07-gone.png", "glaze.mask.texture.exr")]
+    assert sorted(p.name for p in (work / "run").rglob("*")) == expected
 
 
 def test_synth_force_replaces_a_capture_and_inspect_odd_downscale(base, tmp_path, capsys):
