@@ -13,6 +13,8 @@ from pathlib import Path
 import mitsuba as mi
 import numpy as np
 
+from captures.errors import InputError
+
 from ..config import load_render_config
 from ..render import scene_dict
 
@@ -206,10 +208,16 @@ def _fit_setup(config: Path):
 
     cfg = load_fit_config(config)
     capture = open_capture(cfg.capture, cfg.downscale)
-    free = resolve(cfg.material, cfg.free)
+    try:
+        free = resolve(cfg.material, cfg.free)
+    except KeyError as err:  # a free key: name the config it came from
+        raise InputError(f"{config}: fit.free: {err.args[0]}") from None
     missing = [f.key for f in free if f.key not in capture.truth]
     if missing:
-        raise ValueError(f"{config}: the capture has no known value for {', '.join(missing)}")
+        raise InputError(
+            f"{config}: fit.free: the capture has no known value for {', '.join(missing)}; "
+            "the bench compares against a capture's [truth]"
+        )
     return cfg, capture, free, start_values(free)
 
 
@@ -561,8 +569,6 @@ def _resumed(results: Path, setting: dict, entries: str, other: str, replace: bo
     none when it does not exist or with `replace`. A file that is not such JSON, or holds
     `other` (another setting), is refused: nothing a user has is overwritten."""
     import json
-
-    from captures.errors import InputError
 
     if not results.exists() or replace:
         return {}

@@ -456,6 +456,14 @@ CASES: list[Case] = [
     ("bench-shapes", lambda d: ["bench", "--only", "recovery", "--shapes", "cube"], ("--shapes",)),
     ("bench-widths", lambda d: ["bench", "--only", "grid", "--widths", "64,x"], ("--widths",)),
     (
+        "bench-fit-free",
+        lambda d: (
+            edit(d / "fit.toml", 'free = ["glaze.roughness"]', 'free = ["glaze.nope"]')
+            or ["bench", "--only", "fit", "--fit-config", d / "fit.toml"]
+        ),
+        ("fit.toml", "fit.free", "glaze.nope"),
+    ),
+    (
         "bench-results-folder",
         lambda d: ["bench", "--only", "recovery", "--results", d],
         ("--results", "folder"),
