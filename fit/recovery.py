@@ -10,6 +10,7 @@ calibration table (error / sigma per case); tests run a fast subset.
 
 from __future__ import annotations
 
+import math
 import tempfile
 import time
 import zlib
@@ -225,15 +226,27 @@ class Outcome:
 
     @classmethod
     def from_dict(cls, case: Case, saved: dict) -> Outcome:
-        """An outcome saved by `as_dict`."""
-        return cls(case, saved["values"], saved["std"], saved["seconds"])
+        """An outcome saved by `as_dict` (an undetermined sd, saved as null, infinite again)."""
+        std = {
+            k: [math.inf if x is None else x for x in v] if isinstance(v, list) else v
+            for k, v in saved["std"].items()
+        }
+        std = {k: math.inf if v is None else v for k, v in std.items()}
+        return cls(case, saved["values"], std, saved["seconds"])
 
     def as_dict(self) -> dict:
+        """The outcome as strict JSON values (an undetermined, infinite sd as null)."""
+        std = {
+            k: [x if math.isfinite(x) else None for x in v]
+            if isinstance(v, list)
+            else (v if math.isfinite(v) else None)
+            for k, v in self.std.items()
+        }
         return {
             "case": self.case.name,
             "truth": self.case.truth(),
             "values": self.values,
-            "std": self.std,
+            "std": std,
             "errors": self.errors,
             "sigmas": self.sigmas,
             "seconds": self.seconds,

@@ -4,6 +4,7 @@ table's resume, and the tutorial loop the bench compares against."""
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -75,6 +76,27 @@ def test_outcome_scores_targets_and_sigmas():
     assert not far.within_targets()["glaze.roughness"]  # 9.5 % > 5 %
     assert not far.within_sigmas()["glaze.roughness"]  # 3.8 sd
     assert far.within_targets()["glaze.ior"] and not far.passed()
+
+
+def test_undetermined_sd_is_strict_json_and_reads_back():
+    """An infinite (undetermined) sd is saved as null, not `Infinity` (strict JSON readers
+    refuse it), and read back as infinite: the case stays 'undetermined', not 0 sd."""
+    case = recovery.Case("cup", roughness=0.01)
+    std = {
+        "glaze.pigment": [0.001, math.inf, 0.001],
+        "glaze.roughness": math.inf,
+        "glaze.ior": 0.01,
+    }
+    outcome = recovery.Outcome(case, case.truth() | {"glaze.ior": 1.52}, std, 1.0)
+
+    def refuse(name):
+        raise ValueError(f"not strict JSON: {name}")
+
+    saved = json.loads(json.dumps(outcome.as_dict()), parse_constant=refuse)
+    assert saved["std"]["glaze.roughness"] is None and saved["std"]["glaze.pigment"][1] is None
+    again = recovery.Outcome.from_dict(case, saved)
+    assert again.std == std
+    assert recovery.calibration_rows([again]) == recovery.calibration_rows([outcome])
 
 
 def test_tutorial_loop_moves_toward_the_truth():
