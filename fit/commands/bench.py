@@ -713,6 +713,8 @@ GRID_SOLVERS = ("adam", "lm", "bfgs", "default")
 #: The diagonal subset of other shapes (the cup's, in the issue): (width, spp) pairs, each with
 #: every solver.
 DIAGONAL = ((64, 4), (128, 16), (256, 64))
+#: The tutorial loop runs at the grid's widths up to this one (and at least at the smallest).
+TUTORIAL_MAX_WIDTH = 128
 
 
 def grid_schedule(solver: str, spp: int) -> tuple:
@@ -740,13 +742,14 @@ def grid_cells(
 ) -> list[tuple[str, int, int, str]]:
     """(shape, width, spp, solver) of every cell: the full grid on the sphere, the diagonal on
     other shapes (its pairs whose width is among `widths`), and the tutorial loop (its own spp)
-    on the sphere at the smallest width (it re-traces the scene every iteration: 482 s at 64x48
-    on 2 cores, 8x the default's dearest cell there)."""
+    on the sphere at widths up to `TUTORIAL_MAX_WIDTH` and at the smallest (it re-traces the
+    scene every iteration: 482 s at 64x48 on 2 cores, 8x the default's dearest cell there)."""
     cells = []
     if "sphere" in shapes:
         for width in widths:
             cells += [("sphere", width, s, v) for s in GRID_SPPS for v in GRID_SOLVERS]
-        cells.append(("sphere", min(widths), 0, "tutorial"))
+        tutorial = [w for w in widths if w <= TUTORIAL_MAX_WIDTH] or [min(widths)]
+        cells += [("sphere", w, 0, "tutorial") for w in tutorial]
     for shape in [s for s in shapes if s != "sphere"]:
         pairs = [(w, s) for w, s in DIAGONAL if w in widths]
         cells += [(shape, w, s, v) for w, s in pairs for v in GRID_SOLVERS]

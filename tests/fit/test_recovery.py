@@ -140,7 +140,9 @@ def test_grid_table_resumes_marks_the_front_and_plots(tmp_path, monkeypatch):
         }
 
     monkeypatch.setattr(bench, "grid_cell", fake)
-    assert len(bench.grid_cells(("sphere", "cup"), (64, 128))) == 2 * 12 + 1 + 2 * 4
+    assert len(bench.grid_cells(("sphere", "cup"), (64, 128))) == 2 * 12 + 2 + 2 * 4
+    assert len(bench.grid_cells(("sphere",), (128, 256))) == 2 * 12 + 1  # the loop up to 128
+    assert ("sphere", 256, 0, "tutorial") in bench.grid_cells(("sphere",), (256,))
     cells = bench.grid_cells(("sphere",), (64,))
     assert len(cells) == 3 * 4 + 1 and ("sphere", 64, 0, "tutorial") in cells
     table = bench.grid_table(cells, tmp_path / "g.json", plot=tmp_path / "g.png")

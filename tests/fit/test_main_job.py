@@ -1,0 +1,34 @@
+"""The main job (README's first command): `layerfit fit configs/cup-fit.toml` on the bundled cup
+capture. Slow (about 4 minutes on 2 cores)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fit.cli import main
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.slow
+def test_main_job_fits_the_cup_within_its_reported_sd(tmp_path, monkeypatch):
+    """Every fitted parameter within 3 reported sd of the truth; ior, pigment and thresholds
+    within issue 12's targets (alpha and the clay/lime colours are within their sd, which this
+    capture does not make small enough to promise 5 % and 0.02: README, "The main job")."""
+    monkeypatch.chdir(ROOT)
+    with pytest.raises(SystemExit) as exit_:
+        main(["fit", "configs/cup-fit.toml", "--out", str(tmp_path / "run")])
+    assert exit_.value.code == 0
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    for key, z in summary["error_over_std"].items():
+        assert z is not None and np.all(np.abs(z) <= 3), (key, z)
+    error = summary["error"]
+    assert abs(error["glaze.ior"]) <= 0.03
+    assert np.max(np.abs(error["glaze.pigment"])) <= 0.02
+    for layer in ("glaze", "lime", "stain"):
+        assert abs(error[f"{layer}.mask.threshold"]) <= 0.05
+    assert (tmp_path / "run" / "report.html").exists()
