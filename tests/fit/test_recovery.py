@@ -99,6 +99,7 @@ def test_undetermined_sd_is_strict_json_and_reads_back():
     assert recovery.calibration_rows([again]) == recovery.calibration_rows([outcome])
 
 
+@pytest.mark.slow  # 14 s: a bench utility (the default run stays under 10 minutes)
 def test_tutorial_loop_moves_toward_the_truth():
     """The bench's native tutorial loop (Mitsuba's Adam on raw values) runs, counts its
     renders, and a short run brings alpha and ior closer to a 48x36 sphere's truth."""
