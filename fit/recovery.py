@@ -227,21 +227,12 @@ class Outcome:
     @classmethod
     def from_dict(cls, case: Case, saved: dict) -> Outcome:
         """An outcome saved by `as_dict` (an undetermined sd, saved as null, infinite again)."""
-        std = {
-            k: [math.inf if x is None else x for x in v] if isinstance(v, list) else v
-            for k, v in saved["std"].items()
-        }
-        std = {k: math.inf if v is None else v for k, v in std.items()}
+        std = {k: _map(v, lambda x: math.inf if x is None else x) for k, v in saved["std"].items()}
         return cls(case, saved["values"], std, saved["seconds"])
 
     def as_dict(self) -> dict:
         """The outcome as strict JSON values (an undetermined, infinite sd as null)."""
-        std = {
-            k: [x if math.isfinite(x) else None for x in v]
-            if isinstance(v, list)
-            else (v if math.isfinite(v) else None)
-            for k, v in self.std.items()
-        }
+        std = {k: _map(v, lambda x: x if math.isfinite(x) else None) for k, v in self.std.items()}
         return {
             "case": self.case.name,
             "truth": self.case.truth(),
@@ -254,6 +245,11 @@ class Outcome:
             "within_sigmas": self.within_sigmas(),
             "passed": self.passed(),
         }
+
+
+def _map(value, f):
+    """`f` of a number, or of each number of a list."""
+    return [f(x) for x in value] if isinstance(value, list) else f(value)
 
 
 def recover(

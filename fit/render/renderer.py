@@ -178,13 +178,14 @@ class Renderer:
     With `freeze` (the default) primal renders, reverse passes and the Jacobian's forward passes
     are Dr.Jit frozen functions: recorded at the first call per spp, replayed after without
     re-tracing the path tracer in Python (measured on the Cycles sphere at 8 spp: 1.7x faster
-    primal, 2.1x faster reverse pass; a Jacobian of two 48x36 views 4-6x faster). A batch of thin-lens or orthographic cameras is not frozen: Mitsuba 3.9 does not
-    declare them to the recording, and the batch calls them virtually (measured on the cup, five
-    thin-lens views of 64x56: one batch re-traced at ~1 s an Adam step after one compile; five
-    frozen scenes, one per view, had not finished their first step after 3.5 minutes of
-    compiling, at 128x112). Nothing is frozen when a texture is free (replaying a frozen render
-    after a bitmap's data was replaced crashed: segmentation fault, Dr.Jit 1.5 / Mitsuba 3.9, a
-    16x16 mask texture)."""
+    primal, 2.1x faster reverse pass; a Jacobian of two 48x36 views 4-6x faster). A batch of
+    thin-lens or orthographic cameras is not frozen: Mitsuba 3.9 does not declare them to the
+    recording, and the batch calls them virtually (measured on the cup, five thin-lens views of
+    64x56: one batch re-traced at ~1 s an Adam step after one compile; five frozen scenes, one
+    per view, had not finished their first step after 3.5 minutes of compiling, at 128x112).
+    Nothing is frozen when a texture is free (replaying a frozen render after a bitmap's data
+    was replaced crashed: segmentation fault, Dr.Jit 1.5 / Mitsuba 3.9, a 16x16 mask
+    texture)."""
 
     def __init__(
         self,
