@@ -743,8 +743,8 @@ def grid_cells(
     """(shape, width, spp, solver) of every cell: the full grid on the sphere, the diagonal on
     other shapes (its pairs whose width is among `widths`), and the tutorial loop (its own spp)
     on the sphere at widths up to `TUTORIAL_MAX_WIDTH` and at the smallest (it re-traces the
-    scene every iteration: 777-837 s at 64x48 and 128x96 on 2 cores, 5x the default's dearest
-    cell there)."""
+    scene every iteration: 777-837 s at 64x48 and 128x96 on 2 cores, 5-15x the default's
+    dearest cell there)."""
     cells = []
     if "sphere" in shapes:
         for width in widths:
