@@ -87,9 +87,9 @@ class Phase(BaseModel):
 #: curvature refreshed every 10 steps, averaging the last half of the iterates. It replaced a
 #: second Adam phase (60 x 32 spp, lr 0.02) that could not relax from where the first one left
 #: a weakly determined parameter: alpha 0.02 on a 160x120 sphere ended +12 % for one seed, and
-#: +24 to +127 % at alpha 0.01-0.02 on 96x72 (BENCHMARKS, "Recovery over the range"). The
-#: recovery sweep and the bench grid were measured with 40 gn steps; on the Cycles sphere those
-#: left alpha -2.3 and -2.9 % (issue 5's bar: 2 %), 80 steps +0.8 % (one run, 66 s of fit).
+#: +24 to +127 % at alpha 0.01-0.02 on 96x72 (BENCHMARKS, "Recovery over the range"). With 40
+#: gn steps the Cycles sphere's alpha came out -2.3 and -2.9 % (issue 5's bar: 2 %), with 80
+#: +0.8 % (one run, 66 s of fit); on 64x48 views 80 steps end further off (BENCHMARKS, grid).
 DEFAULT_SCHEDULE = (
     Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
     Phase(solver="gn", steps=80, spp=16, jacobian_spp=16, refresh=10, average=0.5),

@@ -326,6 +326,9 @@ def test_exposure_gains_are_one_grey_gain_per_view():
     r, _ = residual(u, jnp.int32(0))
     assert float(jnp.max(jnp.abs(r))) < 1e-5
     assert problem.values(np.asarray(u))["gain.v1"] == pytest.approx(1.3, rel=1e-6)
+    std, corr, _ = uncertainty(problem, np.asarray(u), spp=4, seed=3)
+    assert isinstance(std["gain.v1"], float) and np.isfinite(std["gain.v1"])
+    assert corr.shape == (4, 4)
     with pytest.raises(ValueError, match="gains 'rgb'"):
         Problem(capture, cfg.material, free, gains="rgb")
 
