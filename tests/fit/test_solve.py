@@ -511,6 +511,21 @@ def test_gauss_newton_with_the_scale_pinned_by_one_view_of_five():
     np.testing.assert_allclose(fitted, gains[1:], rtol=0.15)
 
 
+def test_marquardt_damps_directions_weak_only_jointly():
+    """`marquardt` adds a fraction of the curvature's diagonal: a direction weak only jointly
+    (two coordinates that trade, each well determined alone) takes a far shorter step; a
+    coordinate weak on its own keeps its step (up to 1 + marquardt)."""
+    from fit.solvers.gn import GaussNewton, GNOptions
+
+    h = np.array([[1.0, 0.999, 0.0], [0.999, 1.0, 0.0], [0.0, 0.0, 0.001]])
+    trade, alone = np.array([1.0, -1.0, 0.0]) / np.sqrt(2), np.array([0.0, 0.0, 1.0])
+    plain = GaussNewton._inverse(h, GNOptions())
+    damped = GaussNewton._inverse(h, GNOptions(marquardt=0.5))
+    assert trade @ plain @ trade == pytest.approx(1000.0, rel=2e-3)
+    assert trade @ damped @ trade == pytest.approx(1 / 0.501, rel=2e-3)
+    assert alone @ damped @ alone == pytest.approx(1000.0 / 1.5, rel=2e-3)
+
+
 def test_cross_curvature_is_unbiased_where_one_jacobians_is_not():
     """Two noisy Jacobians' symmetrised cross product averages to the noise-free `J^T J`; one
     Jacobian's own product adds its noise (the bias that hid alpha's uncertainty); a column of
