@@ -145,8 +145,8 @@ class GaussNewton(AbstractSolver):
 
     @staticmethod
     def _inverse(h: np.ndarray, options) -> np.ndarray:
-        """The damped inverse of a curvature through its eigenvalues, each at least `floor` of
-        the largest; the identity if the curvature is not finite."""
+        """The damped inverse of a curvature (plus `marquardt` times its diagonal) through its
+        eigenvalues, each at least `floor` of the largest; the identity if it is not finite."""
         if not np.all(np.isfinite(h)):
             return np.eye(len(h))
         h = 0.5 * (h + h.T)
