@@ -30,7 +30,7 @@ class GNOptions(Options):
     marquardt: float = Field(0.0, ge=0.0)
     """Marquardt damping: this fraction of the curvature's diagonal is added to it. Directions
     that are weak only jointly (colours trading with gains) take shorter steps, where the steps'
-    Monte Carlo noise swamps their signal; directions weak on their own are unaffected."""
+    Monte Carlo noise swamps their signal; a direction weak on its own only by 1 + marquardt."""
     max_step: PositiveFloat = 1.0
     """The largest change of any solver coordinate in one step."""
     average: float = Field(0.5, ge=0.0, le=1.0)
@@ -55,8 +55,9 @@ class GaussNewton(AbstractSolver):
     curvature (their derivative from an independent render, unbiased). Setting them in closed
     form between steps instead (Adam's profiling) leaves them one step behind the material, whose
     steps then meet the curvature that the gains were meant to absorb: where colours trade with
-    the gains (the colours' common scale, pinned by one view of five on the cup), the steps
-    overshot by 2.5x, oscillated, and were clipped to a tenth, stalling every parameter."""
+    the gains (the colours' common scale, pinned by one view of five on the cup: a Schur
+    curvature about a fifth of the whole, so eta 0.5 steps about 2.5x too long) the steps flipped
+    sign every step and were clipped to about a tenth (measured), stalling every parameter."""
 
     name = "gn"
     Options = GNOptions

@@ -472,9 +472,10 @@ def test_gauss_newton_steps_gains_with_the_material():
 def test_gauss_newton_with_the_scale_pinned_by_one_view_of_five():
     """Five views with unknown exposures: the colours' common scale is pinned by the first view
     alone and trades with the other four gains. Gains set in closed form a step behind the
-    material made its steps along that trade overshoot 2.5x: the scale flipped every step (lag-1
-    autocorrelation -0.86 to -1.0, spread 0.26-0.35 in log; seeds 1-3 at 16 and 32 spp) and ior
-    ended 0.03-0.10 low. Stepped with the material the iterates only carry the steps' noise."""
+    material made its steps along that trade overshoot (about 2.5x): the scale flipped every
+    step (lag-1 autocorrelation -0.86 to -1.0, spread 0.26-0.35 in log; seeds 1-3 at 16 and 32
+    spp) and ior ended 0.03-0.10 low. Stepped with the material the iterates only carry the
+    steps' noise."""
     from captures.scene import Camera
 
     cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
