@@ -60,6 +60,10 @@ class Result:
     #: Per solver coordinate, the variance of the averaged answer from the steps' own Monte Carlo
     #: noise (solvers that average a tail of iterates; None otherwise): see `tail_variance`.
     tail_variance: np.ndarray | None = None
+    #: The averaged tail's steps as (iterates before each step, the step's gradient), rows per
+    #: step (solvers whose steps follow the loss's own fresh-seed gradient: `gn`); from them the
+    #: uncertainty estimates the averaged answer's Monte Carlo error (see `uncertainty`).
+    tail_gradients: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def tail_variance(tail: list) -> np.ndarray | None:

@@ -50,15 +50,15 @@ class Checkpoint:
             return
         meta, arrays = {}, {}
         state = dict(self.latest)
-        for key in ("history", "tail"):  # live lists, possibly appended to since the offer
+        for key in ("history", "tail", "tail_gradients"):  # live lists, possibly appended to
             if f"n_{key}" in state:
                 state[key] = state[key][: state.pop(f"n_{key}")]
         for key, value in state.items():
             if key == "leaves":
                 arrays |= {f"leaf_{i}": np.asarray(v) for i, v in enumerate(value)}
                 meta["n_leaves"] = len(value)
-            elif key == "tail":  # the averaged iterates so far: (n, size of u)
-                size = np.size(state["u"])
+            elif key in ("tail", "tail_gradients"):  # per averaged step: u (and its gradient)
+                size = np.size(state["u"]) * (1 if key == "tail" else 2)
                 arrays[key] = np.asarray(value, np.float32).reshape(len(value), size)
             elif hasattr(value, "shape"):  # numpy or JAX arrays
                 arrays[key] = np.asarray(value)

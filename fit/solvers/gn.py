@@ -90,12 +90,13 @@ class GaussNewton(AbstractSolver):
 
         value_and_grad = jax.jit(jax.value_and_grad(loss))
         u = np.asarray(u0, np.float32)
-        history, tail, rejected, first = [], [], 0, 0
+        history, tail, gradients, rejected, first = [], [], [], 0, 0
         mean_jac = inverse = None
         if resume is not None:
             u, first = np.asarray(resume["u"], np.float32), int(resume["step"])
             history, rejected = list(resume["history"]), int(resume["rejected"])
             tail = list(np.asarray(resume["tail"]))
+            gradients = list(np.asarray(resume.get("tail_gradients", [])))
             if resume["leaves"]:  # the Jacobian in use when the state was offered
                 mean_jac = np.asarray(resume["leaves"][0], np.float64)
                 inverse = self._inverse(mean_jac.T @ mean_jac, options)
@@ -115,6 +116,8 @@ class GaussNewton(AbstractSolver):
             delta = -options.eta * (inverse @ grad)
             delta *= min(1.0, options.max_step / max(float(np.max(np.abs(delta))), 1e-30))
             new_u = u + delta.astype(np.float32)
+            if i >= first_averaged and np.all(np.isfinite(grad)):
+                gradients.append(np.concatenate([u, grad]).astype(np.float32))
             if np.all(np.isfinite(new_u)) and np.isfinite(value):
                 u = new_u
             else:
@@ -134,10 +137,16 @@ class GaussNewton(AbstractSolver):
                         "n_history": len(history),
                         "tail": tail,
                         "n_tail": len(tail),
+                        "tail_gradients": gradients,
+                        "n_tail_gradients": len(gradients),
                         "rejected": rejected,
                     }
                 )
-        return averaged_result(self.name, problem, u, tail, None, history, steps, rejected)
+        out = averaged_result(self.name, problem, u, tail, None, history, steps, rejected)
+        if gradients:
+            pairs = np.asarray(gradients, np.float64)
+            out.tail_gradients = (pairs[:, : len(u)], pairs[:, len(u) :])
+        return out
 
     @staticmethod
     def _jacobian(problem, u, options, seed, downscale) -> np.ndarray:

@@ -34,7 +34,7 @@ class Phase(BaseModel):
     model_config = ConfigDict(extra="allow", frozen=True, use_attribute_docstrings=True)
 
     solver: str
-    """The solver: adam | lm | bfgs (`fit/solvers/registry.py`)."""
+    """The solver: adam | gn | lm | bfgs (`fit/solvers/registry.py`)."""
     steps: PositiveInt
     """Steps (Adam) or the most steps (LM, BFGS)."""
     spp: PositiveInt
@@ -90,9 +90,12 @@ class Phase(BaseModel):
 #: +24 to +127 % at alpha 0.01-0.02 on 96x72 (BENCHMARKS, "Recovery over the range"). With 40
 #: gn steps the Cycles sphere's alpha came out -2.3 and -2.9 % (issue 5's bar: 2 %), with 80
 #: +0.8 % (one run, 66 s of fit); on 64x48 views 80 steps end further off (BENCHMARKS, grid).
+#: Then 24 steps of 64 spp for the same renders: a gradient's noise is mostly its adjoint's
+#: noise times the primal's, so its variance falls as 1 / spp^2 against 1 / steps (alpha 0.02 on
+#: a 160x120 sphere, one target, fit seeds 0-2: -31, +1, -13 % with 80 x 16; -4, +1, +14 %).
 DEFAULT_SCHEDULE = (
     Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
-    Phase(solver="gn", steps=80, spp=16, jacobian_spp=16, refresh=10, average=0.5),
+    Phase(solver="gn", steps=24, spp=64, jacobian_spp=32, refresh=6, average=0.5),
 )
 
 
@@ -210,5 +213,8 @@ def run_schedule(
             uncertainty_spp,
             seed + len(phases),
             extra_variance=result.tail_variance,
+            # the tail's gradients are of the last phase's loss: at another resolution they
+            # would not match the curvature rendered here
+            tail_gradients=result.tail_gradients if phases[-1].downscale == 1 else None,
         )
     return result
