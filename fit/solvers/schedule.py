@@ -83,19 +83,20 @@ class Phase(BaseModel):
 
 #: The default schedule: Adam with fresh seeds at half resolution and 8 spp is cheap and robust
 #: from far away (its scale-free steps also move a parameter started next to a bound, where the
-#: sigmoid is flat); then the stochastic Gauss-Newton phase at full resolution, 16 spp, its
-#: curvature refreshed every 10 steps, averaging the last half of the iterates. It replaced a
-#: second Adam phase (60 x 32 spp, lr 0.02) that could not relax from where the first one left
-#: a weakly determined parameter: alpha 0.02 on a 160x120 sphere ended +12 % for one seed, and
-#: +24 to +127 % at alpha 0.01-0.02 on 96x72 (BENCHMARKS, "Recovery over the range"). With 40
-#: gn steps the Cycles sphere's alpha came out -2.3 and -2.9 % (issue 5's bar: 2 %), with 80
-#: +0.8 % (one run, 66 s of fit); on 64x48 views 80 steps end further off (BENCHMARKS, grid).
-#: Then 24 steps of 64 spp for the same renders: a gradient's noise is mostly its adjoint's
-#: noise times the primal's, so its variance falls as 1 / spp^2 against 1 / steps (alpha 0.02 on
-#: a 160x120 sphere, one target, fit seeds 0-2: -31, +1, -13 % with 80 x 16; -4, +1, +14 %).
+#: sigmoid is flat); then the stochastic Gauss-Newton `gn` at full resolution, in two phases: 56
+#: steps of 16 spp relax (their last iterate kept), 12 of 64 spp are averaged. A gradient's
+#: variance falls faster than 1 / spp (8x for 4x the samples at alpha 0.02; README "Fitting"),
+#: so the average is best taken over few steps of many samples; relaxing takes steps (24 x 64
+#: spp alone left ior -0.03 and -0.11 off at alpha 0.6 and 1, in a low-ior basin). `gn`
+#: replaced a second Adam phase (60 x 32 spp, lr 0.02) that could not relax from where the
+#: first one left a weakly determined parameter: alpha 0.02 on a 160x120 sphere ended +12 % for
+#: one seed, and +24 to +127 % at alpha 0.01-0.02 on 96x72 (BENCHMARKS, "Recovery over the
+#: range"). With one `gn` phase of 40 steps the Cycles sphere's alpha came out -2.3 and -2.9 %
+#: (issue 5's bar: 2 %), with 80 +0.8 % (one run, 66 s of fit).
 DEFAULT_SCHEDULE = (
     Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
-    Phase(solver="gn", steps=24, spp=64, jacobian_spp=32, refresh=6, average=0.5),
+    Phase(solver="gn", steps=56, spp=16, jacobian_spp=16, refresh=10, average=0.0),
+    Phase(solver="gn", steps=12, spp=64, jacobian_spp=32, refresh=6, average=1.0),
 )
 
 
