@@ -29,7 +29,7 @@ def test_recovered_within_targets_and_three_sigma(case):
 
 @pytest.mark.slow
 def test_full_sweep_is_calibrated():
-    """The whole sweep at 160x120 (about 25 minutes on 2 cores): at least 90 % of the cases
+    """The whole sweep at 160x120 (about 35 minutes on 2 cores): at least 90 % of the cases
     have every error within 3 reported sd (the honest-uncertainty half of the issue's
     calibration; which cases meet the accuracy targets is the bench's table, BENCHMARKS)."""
     outcomes = [recovery.recover(case, width=160, height=120) for case in recovery.sweep()]
