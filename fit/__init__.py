@@ -9,4 +9,13 @@
 - `fit.output`: figures and the HTML report of a run, through one atomic writer.
 - `fit.commands`: one module per command; `fit.cli` is the thin command line over them.
 - `fit.variant`: choose the Mitsuba variant once (before anything imports Mitsuba).
+
+JAX runs on the CPU unless ``JAX_PLATFORMS`` says otherwise: its work here is the solvers' small
+vectors and images that cross from Dr.Jit through NumPy anyway, and on a GPU it would otherwise take
+75 % of the device's memory at its first array, which Dr.Jit's renders need (measured on an H200:
+parallel test workers ran out of GPU memory).
 """
+
+import os
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")

@@ -58,10 +58,11 @@ def test_explicit_old_llvm_is_refused(tmp_path, monkeypatch):
 
 
 def _old_llvm(tmp_path) -> dict:
-    """Environment pointing Dr.Jit at a (fake) libLLVM 15, which crashes it."""
+    """Environment pointing Dr.Jit at a (fake) libLLVM 15, which crashes it, with the LLVM variant
+    asked for (also where the suite runs with ``LAYERFIT_VARIANT=cuda_ad_rgb``)."""
     old = tmp_path / "libLLVM-15.so"
     old.touch()
-    return {"DRJIT_LIBLLVM_PATH": str(old)}
+    return {"DRJIT_LIBLLVM_PATH": str(old), "LAYERFIT_VARIANT": "llvm_ad_rgb"}
 
 
 def test_cli_stops_with_one_line(tmp_path):
@@ -106,3 +107,17 @@ def test_tests_stop_with_one_line(tmp_path):
     assert out.returncode == 3, out.stdout + out.stderr
     assert "layerfit tests cannot run" in out.stdout + out.stderr
     assert "install libLLVM >= 16" in out.stdout + out.stderr
+
+
+@pytest.mark.parametrize("asked", [None, "cpu,cuda"])
+def test_jax_stays_off_the_gpu_unless_asked(asked):
+    """`import fit` makes JAX run on the CPU (on a GPU it would take 75 % of the memory that
+    Dr.Jit's renders need), unless the user set ``JAX_PLATFORMS``."""
+    env = {k: v for k, v in os.environ.items() if k != "JAX_PLATFORMS"}
+    if asked:
+        env["JAX_PLATFORMS"] = asked
+    code = "import os, fit; print(os.environ['JAX_PLATFORMS'])"
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env
+    )
+    assert out.stdout.strip() == (asked or "cpu")
