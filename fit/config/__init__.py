@@ -18,7 +18,7 @@ fresnel = "exact"
 free = ["glaze.pigment", "glaze.roughness", "glaze.ior"]  # keys (fit/material/keys.py); also
                           # lights.scale, environment.scale, <layer>.mask.texture, bump, ...
 seed = 0
-gains = false             # free RGB gain per view but the first (unknown exposure / white balance)
+gains = false             # a free RGB gain per view, geometric mean 1 (exposure, white balance)
 loss = "l2"               # l2 | huber | cauchy (robust: biased under Monte Carlo noise)
 loss_scale = 0.05         # robust losses: differences beyond this count less (default: 0.1 x mean)
 uncertainty_spp = 64      # the final Jacobian's samples per pixel

@@ -36,8 +36,9 @@ class FitSettings(StrictModel):
     seed: NonNegativeInt = 0
     """Seed of the renders (phase k uses seed + k)."""
     gains: bool | Literal["exposure"] = False
-    """A free gain per view but the first: true, an RGB gain (unknown exposure and white
-    balance); "exposure", one grey gain (one camera, its white balance fixed)."""
+    """A free gain per view, their geometric mean 1 (the declared exposures right on average):
+    true, an RGB gain (unknown exposure and white balance); "exposure", one grey gain (one
+    camera, its white balance fixed)."""
 
     @field_validator("gains", mode="before")
     @classmethod

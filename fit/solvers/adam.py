@@ -55,7 +55,7 @@ class Adam(AbstractSolver):
     ) -> Result:
         render = problem.render_fn("reverse", spp, downscale)
         # the closed form is the L2 loss's; robust losses keep the gains as Adam's coordinates
-        profile = options.profile_gains and problem.gains and problem.loss == "l2"
+        profile = options.profile_gains and bool(problem.gain_views) and problem.loss == "l2"
         residual = residuals(
             problem, render, downscale, independent_gains=True, profile_gains=profile
         )
@@ -97,7 +97,7 @@ class Adam(AbstractSolver):
                 if i >= first_averaged:
                     gain_sums = sums if gain_sums is None else gain_sums + sums
                     sums = gain_sums
-                new_u = new_u.at[n:].set(_log_gains(sums))
+                new_u = new_u.at[n:].set(problem.gain_coordinates(_log_gains(sums)))
             value = float(new_state.f)  # the loss at `u`, before this update
             if np.all(np.isfinite(np.asarray(new_u))) and np.isfinite(value):
                 u, state = new_u, new_state
@@ -134,7 +134,7 @@ def averaged_result(name, problem, u, tail, gain_sums, history, steps, rejected)
     if tail:
         u = np.mean(tail, axis=0).astype(np.float32)
         if gain_sums is not None:
-            u[problem.n_material :] = _log_gains(gain_sums)
+            u[problem.n_material :] = problem.gain_coordinates(_log_gains(gain_sums))
     final = history[-1] if history else float("nan")
     if steps and rejected == steps:
         outcome, message = Outcome.DIVERGED, "every step was non-finite; kept the start"

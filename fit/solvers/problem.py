@@ -22,11 +22,15 @@ class Problem:
     """What a fit compares: the capture's views against renders of `material` with `free`
     parameters, weighted by the validity weights.
 
-    With `gains`, every view but the first has a free gain (photos rarely share an exact
-    exposure or white balance; the first stays fixed to remove the albedo/gain ambiguity), solved
-    as its logarithm and reported as `gain.<view>`: an RGB gain (`True`: exposure and white
-    balance), or one grey gain per view (`"exposure"`: one camera's fixed white balance, where
-    free RGB gains would let every colour trade against three of them).
+    With `gains`, every view has a free gain (photos rarely share an exact exposure or white
+    balance), reported as `gain.<view>`: an RGB gain (`True`: exposure and white balance), or one
+    grey gain per view (`"exposure"`: one camera's fixed white balance, where free RGB gains would
+    let every colour trade against three of them). The gains' geometric mean is 1 (per channel):
+    the declared exposures are taken as right on average, which removes the albedo/gain
+    ambiguity. (Fixing the first view's gain instead let that one view's noise set every colour's
+    scale: on the cup, the other four gains moved -9.5 % together and the colours +5 to +8 %.)
+    The solver's coordinates are the log-gains of every view but the first; the first's is minus
+    their sum.
 
     `loss` shapes each pixel's difference d = render - photo before weighting: "l2" (d itself, the
     default: unbiased under Monte Carlo noise), or robust ones that count differences beyond
@@ -93,7 +97,33 @@ class Problem:
 
     @property
     def gain_views(self) -> list[int]:
-        return list(range(1, len(self.capture.views))) if self.gains else []
+        """The views with a gain: all of them, with `gains` and at least two views."""
+        n_views = len(self.capture.views)
+        return list(range(n_views)) if self.gains and n_views > 1 else []
+
+    @property
+    def n_gain(self) -> int:
+        """The solver's gain coordinates: the log-gains of every gained view but the first."""
+        return self.gain_channels * max(len(self.gain_views) - 1, 0)
+
+    def log_gains(self, coords, xp=np):
+        """Every gained view's log-gain (views x channels) from the solver's coordinates: the
+        first view's is minus the sum of the others', so that they sum to zero."""
+        rest = xp.reshape(coords, (-1, self.gain_channels))
+        return xp.concatenate([-xp.sum(rest, axis=0, keepdims=True), rest])
+
+    def gain_coordinates(self, log_gains) -> np.ndarray:
+        """The solver's coordinates for per-view log-gains (flattened views x channels): their
+        mean over views is removed (the gauge), then the first view's dropped."""
+        table = np.reshape(np.asarray(log_gains, np.float64), (-1, self.gain_channels))
+        return (table - table.mean(axis=0))[1:].ravel().astype(np.float32)
+
+    def gain_jacobian(self, coords) -> np.ndarray:
+        """d(gains)/d(coordinates): (views x channels) x `n_gain`."""
+        c, n_views = self.gain_channels, len(self.gain_views)
+        sums = np.vstack([-np.tile(np.eye(c), (1, n_views - 1)), np.eye(c * (n_views - 1))])
+        gains = np.exp(self.log_gains(np.asarray(coords, np.float64)).ravel())
+        return gains[:, None] * sums
 
     @property
     def gain_channels(self) -> int:
@@ -105,27 +135,28 @@ class Problem:
         return np.concatenate(
             [
                 to_unconstrained(self.free, start),
-                np.zeros(self.gain_channels * len(self.gain_views)),
+                np.zeros(self.n_gain),
             ]
         ).astype(np.float32)
 
     def values(self, u) -> dict:
         u = np.asarray(u, dtype=np.float64)
         out = as_dict(self.free, to_physical(self.free, u[: self.n_material]))
-        c, n = self.gain_channels, self.n_material
-        for i, view in enumerate(self.gain_views):
-            gain = np.exp(u[n + c * i : n + c * (i + 1)])
-            name = f"gain.{self.capture.views[view].name}"
-            out[name] = gain.tolist() if c > 1 else float(gain[0])
+        if self.gain_views:
+            gains = np.exp(self.log_gains(u[self.n_material :]))
+            for view, gain in zip(self.gain_views, gains, strict=True):
+                name = f"gain.{self.capture.views[view].name}"
+                out[name] = gain.tolist() if gain.size > 1 else float(gain[0])
         return out
 
     def gain_multipliers(self, log_gains, downscale: int = 1):
-        """Per-element multipliers of the flattened views (the first view's are 1)."""
+        """Per-element multipliers of the flattened views from the solver's gain coordinates."""
         views = self.at(downscale).views
-        parts, c = [jnp.ones(views[0].image.size, jnp.float32)], self.gain_channels
-        for i, view in enumerate(self.gain_views):
-            gain = jnp.exp(log_gains[c * i : c * (i + 1)]).astype(jnp.float32)
-            parts.append(jnp.tile(gain, views[view].image.size // c))
+        gains = jnp.exp(self.log_gains(log_gains, jnp)).astype(jnp.float32)
+        parts = [
+            jnp.tile(gain, views[view].image.size // self.gain_channels)
+            for view, gain in zip(self.gain_views, gains, strict=True)
+        ]
         return jnp.concatenate(parts)
 
 
@@ -170,15 +201,16 @@ def residuals(
     With `profile_gains` the gains in `u` are held fixed (no derivative) and each evaluation also
     returns the sums of their weighted least-squares solution per view and channel,
     `(sum(w T I'), sum(w I I'))` with the independent render I': `residual(u, seed)` returns
-    `(residual, (num, den))`. A solver sets the gains to `num / den` between steps (variable
-    projection: the material then descends the loss with the gains at their best, and gains and
-    colours cannot trade along a shallow valley); summing them over steps before dividing keeps
-    the ratio's own noise bias small.
+    `(residual, (num, den))`. A solver sets the gains to `num / den` between steps, their
+    geometric mean divided out (`Problem.gain_coordinates`; variable projection: the material then
+    descends the loss with the gains at their best, and gains and colours cannot trade along a
+    shallow valley); summing them over steps before dividing keeps the ratio's own noise bias
+    small.
     """
     target, sqrt_w = (jnp.asarray(a) for a in problem.target(downscale))
     n, loss, scale = problem.n_material, problem.loss, problem.robust_scale()
-    independent = independent_gains and problem.gains
-    profile = profile_gains and problem.gains
+    independent = independent_gains and bool(problem.gain_views)
+    profile = profile_gains and bool(problem.gain_views)
     if profile:
         segments, n_segments = _gain_segments(problem, downscale)
         weight = sqrt_w * sqrt_w
@@ -189,11 +221,11 @@ def residuals(
         if profile:
             other = jax.lax.stop_gradient(render(jax.lax.stop_gradient(x), seed + GAIN_SEED_OFFSET))
             fixed = jax.lax.stop_gradient(image)
-            num = jax.ops.segment_sum(weight * target * other, segments, n_segments)[1:]
-            den = jax.ops.segment_sum(weight * fixed * other, segments, n_segments)[1:]
+            num = jax.ops.segment_sum(weight * target * other, segments, n_segments)
+            den = jax.ops.segment_sum(weight * fixed * other, segments, n_segments)
             gain = jax.lax.stop_gradient(problem.gain_multipliers(u[n:], downscale))
             return sqrt_w * shape_loss(image * gain - target, loss, scale), (num, den)
-        if problem.gains:
+        if problem.gain_views:
             gain = problem.gain_multipliers(u[n:], downscale)
             if independent:
                 other = jax.lax.stop_gradient(
@@ -209,11 +241,11 @@ def residuals(
 
 
 def _gain_segments(problem: Problem, downscale: int) -> tuple[jnp.ndarray, int]:
-    """Each flattened element's gain: 0 for the first view (fixed), 1 + c i + channel for the
-    i-th view with a gain of c components (channel 0 for a grey gain)."""
+    """Each flattened element's gain: c i + channel for the i-th view with a gain of c components
+    (channel 0 for a grey gain)."""
     views, c = problem.at(downscale).views, problem.gain_channels
-    parts = [np.zeros(views[0].image.size, np.int32)]
-    for i, view in enumerate(problem.gain_views):
-        size = views[view].image.size
-        parts.append(1 + c * i + np.arange(size, dtype=np.int32) % c)
-    return jnp.asarray(np.concatenate(parts)), 1 + c * len(problem.gain_views)
+    parts = [
+        c * i + np.arange(views[view].image.size, dtype=np.int32) % c
+        for i, view in enumerate(problem.gain_views)
+    ]
+    return jnp.asarray(np.concatenate(parts)), c * len(problem.gain_views)

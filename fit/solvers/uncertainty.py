@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.linalg import block_diag
 
 from ..material import to_physical
 from .problem import Problem, residuals
@@ -127,12 +128,11 @@ def uncertainty(
     half = max(spp // 2, 1)
     r1, jac1 = linearised(problem, u, half, seed, downscale)
     r2, jac2 = linearised(problem, u, half, seed + CROSS_SEED_OFFSET, downscale)
-    dxdu = np.concatenate(
-        [
-            np.diag(np.asarray(jax.jacfwd(lambda v: to_physical(problem.free, v, jnp))(u[:n]))),
-            np.exp(np.asarray(u[n:], np.float64)),
-        ]
-    )
+    # d(values)/du: the material's transforms, then a block for the gains (each view's gain
+    # depends on every gain coordinate through the first view's)
+    dxdu = np.asarray(jax.jacfwd(lambda v: to_physical(problem.free, v, jnp))(u[:n]), np.float64)
+    if problem.gain_views:
+        dxdu = block_diag(dxdu, problem.gain_jacobian(u[n:]))
     n_obs = int(np.count_nonzero(np.any((jac1 != 0) | (jac2 != 0), axis=1)))
     bread, undetermined = _inverse_determined(_cross(jac1, jac2))
     cov = n_obs / max(n_obs - jac1.shape[1], 1) * bread @ _meat(jac1, jac2, r1, r2) @ bread
@@ -141,8 +141,11 @@ def uncertainty(
     elif extra_variance is not None:
         cov[np.diag_indices_from(cov)] += np.asarray(extra_variance, np.float64)
     cov[undetermined, :] = cov[:, undetermined] = 0.0
-    cov[undetermined, undetermined] = np.inf
-    cov = cov * np.outer(dxdu, dxdu)
+    cov = dxdu @ cov @ dxdu.T
+    # a value that depends on an undetermined coordinate is undetermined
+    unknown = np.any(dxdu[:, undetermined] != 0, axis=1)
+    cov[unknown, :] = cov[:, unknown] = 0.0
+    cov[unknown, unknown] = np.inf
     std_flat = np.sqrt(np.clip(np.diag(cov), 0, None))
     with np.errstate(invalid="ignore"):  # inf / inf where undetermined: no correlation known
         corr = cov / np.maximum(np.outer(std_flat, std_flat), 1e-30)
