@@ -98,8 +98,9 @@ class Problem:
     @property
     def gain_views(self) -> list[int]:
         """The views with a gain: all of them, with `gains` and at least two views."""
-        n_views = len(self.capture.views)
-        return list(range(n_views)) if self.gains and n_views > 1 else []
+        if not self.gains or len(self.capture.views) < 2:
+            return []
+        return list(range(len(self.capture.views)))
 
     @property
     def n_gain(self) -> int:
