@@ -51,7 +51,7 @@ class Interrupted(Exception):
 
 
 def held_out(n_views: int, n: int) -> list[int]:
-    """`n` view indices spread over `n_views`, never the first (the gains' reference)."""
+    """`n` view indices spread over `n_views`, never the first."""
     if n == 0:
         return []
     if not 0 < n < n_views:
