@@ -4,8 +4,11 @@ values, and its derivatives (reverse: a vector-Jacobian product; forward: the fu
 from __future__ import annotations
 
 import gc
+import logging
 import re
+import weakref
 from contextlib import contextmanager
+from functools import partial
 
 import drjit as dr
 import mitsuba as mi
@@ -16,6 +19,8 @@ from captures.capture import Capture
 from ..material import Free, Material
 from .scene import MATERIAL_PREFIX, batch_sensor_dict, scene_dict
 
+log = logging.getLogger(__name__)
+
 #: Sensors whose derived Dr.Jit members (sample-to-camera transform, ray differentials, the
 #: normalisation; thin lens also `x_fov`) are evaluated at load time (`dr::make_opaque`) but not
 #: declared to Dr.Jit's frozen-function traversal (no `MI_TRAVERSE_CB` in Mitsuba 3.9.1's
@@ -24,30 +29,49 @@ from .scene import MATERIAL_PREFIX, batch_sensor_dict, scene_dict
 _UNTRAVERSED_SENSORS = ("OrthographicCamera", "ThinLensCamera")
 
 
-def _rebuild_sensor(scene, x_fov: float | None) -> None:
-    """Inside a frozen function: rebuild such a sensor's derived members from Python scalars, so
-    every variable the recording reads is an input or created while recording (a tiny kernel,
-    replayed with the render). A no-op for other sensors."""
+def _cameras(scene) -> list:
+    """The scene's camera sensors: its sensor, or a `batch` sensor's children in film order."""
     sensor = scene.sensors()[0]
-    if sensor.class_name() not in _UNTRAVERSED_SENSORS:
-        return
-    if x_fov is not None:  # thin lens: its evaluated x_fov feeds the projection
-        mi.traverse(sensor)["x_fov"] = x_fov
-    # a non-empty key list without "to_world": with it (or empty) Endpoint re-reads the
-    # transform's value into its scalar copy, a read that a recording refuses
-    sensor.parameters_changed(["x_fov"])
+    if sensor.class_name() != "BatchSensor":
+        return [sensor]
+    props = mi.traverse(sensor).properties
+    return [props[k][2] for k in props if k.startswith("view_") and k.endswith(".to_world")]
 
 
-def _sensor_fov(scene) -> float | None:
-    """A thin-lens sensor's field of view as a Python float (read before any recording), for
-    `_rebuild_sensor`; None for other sensors."""
-    sensor = scene.sensors()[0]
-    if sensor.class_name() != "ThinLensCamera":
-        return None
-    return float(mi.traverse(sensor)["x_fov"][0])
+#: Every live `_Group` with such sensors among its cameras. A `batch` sensor calls its
+#: children virtually, and a recorded virtual call traces every live camera of the process.
+#: Measured (Dr.Jit 1.5, Mitsuba 3.9.1): with another such group loaded before it, rebuilding
+#: the other's sensors inside the recording too, a batch's frozen reverse and forward passes
+#: replayed zero or wrong derivatives (primal passes replayed right). So a batch of such
+#: cameras is frozen only until another such group is alive at one of its calls (`_Frozen`):
+#: a fit's renderer is frozen, a second resolution's phases (and the first's after) are not.
+_UNTRAVERSED: weakref.WeakSet = weakref.WeakSet()
 
 
-def _reverse_pass(scene, grad_in, seed, spp: int, keys: tuple, x_fov: float | None = None) -> list:
+def _rebuild_sensor(scene, x_fov: tuple) -> None:
+    """Inside a frozen function: rebuild such sensors' derived members (a batch's children
+    too) from Python scalars, so every variable the recording reads is an input or created
+    while recording (a tiny kernel, replayed with the render). A no-op for other sensors."""
+    for sensor, fov in zip(_cameras(scene), x_fov, strict=True):
+        if sensor.class_name() not in _UNTRAVERSED_SENSORS:
+            continue
+        if fov is not None:  # thin lens: its evaluated x_fov feeds the projection
+            mi.traverse(sensor)["x_fov"] = fov
+        # a non-empty key list without "to_world": with it (or empty) Endpoint re-reads the
+        # transform's value into its scalar copy, a read that a recording refuses
+        sensor.parameters_changed(["x_fov"])
+
+
+def _sensor_fov(scene) -> tuple:
+    """Each camera's field of view as a Python float where it is a thin lens (read before any
+    recording), for `_rebuild_sensor`; None for other sensors."""
+    return tuple(
+        float(mi.traverse(s)["x_fov"][0]) if s.class_name() == "ThinLensCamera" else None
+        for s in _cameras(scene)
+    )
+
+
+def _reverse_pass(scene, grad_in, seed, spp: int, keys: tuple, x_fov: tuple = ()) -> list:
     """Gradients of `<grad_in, render>` with respect to the parameters at `keys` (a frozen
     function's body: Dr.Jit inputs only, the AD state set and cleared inside)."""
     _rebuild_sensor(scene, x_fov)
@@ -62,7 +86,7 @@ def _reverse_pass(scene, grad_in, seed, spp: int, keys: tuple, x_fov: float | No
     return grads
 
 
-def _forward_pass(scene, tangents: list, seed, spp: int, keys: tuple, x_fov: float | None = None):
+def _forward_pass(scene, tangents: list, seed, spp: int, keys: tuple, x_fov: tuple = ()):
     """The forward-mode derivative of the render along `tangents` (one per parameter at `keys`;
     a frozen function's body: Dr.Jit inputs only, the AD state set and cleared inside)."""
     _rebuild_sensor(scene, x_fov)
@@ -95,7 +119,7 @@ def _no_gc():
             gc.enable()
 
 
-def _primal(scene, seed, spp: int, x_fov: float | None = None):
+def _primal(scene, seed, spp: int, x_fov: tuple = ()):
     _rebuild_sensor(scene, x_fov)
     return mi.render(scene, spp=spp, seed=seed)
 
@@ -138,6 +162,29 @@ def _like(current, values):
 GRAD_SEED_OFFSET = 0x5EED1
 
 
+class _Frozen:
+    """`fn` as a Dr.Jit frozen function, and plainly from the first recording that fails (a
+    thin-lens or orthographic camera of a scene loaded elsewhere, still alive, traced unrebuilt
+    into a batch's recording). With `alone`, plainly from the first call that finds another
+    `_UNTRAVERSED` group alive. A module function, not a bound method (see `_Group`)."""
+
+    def __init__(self, fn, alone: bool = False):
+        self.fn, self.frozen, self.alone = fn, dr.freeze(fn), alone
+
+    def __call__(self, *args):
+        if self.alone and len(_UNTRAVERSED) > 1:
+            self.frozen = None  # for good: its plain calls replace what a recording captured
+        if self.frozen is not None:
+            try:
+                return self.frozen(*args)
+            except RuntimeError as err:
+                if not str(err).startswith("record()"):
+                    raise
+                log.info("not frozen (%s): %s", self.fn.__name__, err.__cause__ or err)
+                self.frozen = None
+        return self.fn(*args)
+
+
 class _Group:
     """Views rendered together: one loaded scene (a `batch` sensor when several), its parameters
     and, per free parameter, the traverse keys it sets (and emitter scales' configured values)."""
@@ -157,11 +204,16 @@ class _Group:
             for k in ks
         }
         self.params.keep([k for ks in self.targets for k in ks])
+        self.fov = _sensor_fov(self.scene)
+        untraversed = any(s.class_name() in _UNTRAVERSED_SENSORS for s in _cameras(self.scene))
+        if untraversed:
+            _UNTRAVERSED.add(self)
+        if wrap is _Frozen:
+            wrap = partial(_Frozen, alone=untraversed and len(views) > 1)
         # module functions, not bound methods: a Renderer holding its own bound methods is a
         # reference cycle, freed only by the cyclic collector, possibly inside a later recording
         self.primal, self.reverse = wrap(_primal), wrap(_reverse_pass)
         self.forward = wrap(_forward_pass)
-        self.fov = _sensor_fov(self.scene)
 
 
 class Renderer:
@@ -178,14 +230,14 @@ class Renderer:
     With `freeze` (the default) primal renders, reverse passes and the Jacobian's forward passes
     are Dr.Jit frozen functions: recorded at the first call per spp, replayed after without
     re-tracing the path tracer in Python (measured on the Cycles sphere at 8 spp: 1.7x faster
-    primal, 2.1x faster reverse pass; a Jacobian of two 48x36 views 4-6x faster). A batch of
-    thin-lens or orthographic cameras is not frozen: Mitsuba 3.9 does not declare them to the
-    recording, and the batch calls them virtually (measured on the cup, five thin-lens views of
-    64x56: one batch re-traced at ~1 s an Adam step after one compile; five frozen scenes, one
-    per view, had not finished their first step after 3.5 minutes of compiling, at 128x112).
-    Nothing is frozen when a texture is free (replaying a frozen render after a bitmap's data
-    was replaced crashed: segmentation fault, Dr.Jit 1.5 / Mitsuba 3.9, a 16x16 mask
-    texture)."""
+    primal, 2.1x faster reverse pass; a Jacobian of two 48x36 views 4-6x faster). Thin-lens and
+    orthographic cameras, which Mitsuba 3.9 does not declare to the recording, are rebuilt
+    inside it (`_rebuild_sensor`). A batch of them is frozen while it is the one scene with such
+    cameras alive (`_UNTRAVERSED`; the cup's five thin-lens views of 64x56: an Adam step at 8
+    spp 0.3 s frozen, ~1.3 s re-traced). A function whose recording fails runs unfrozen from
+    then on (`_Frozen`). Nothing is frozen when a texture is free (replaying a frozen render
+    after a bitmap's data was replaced crashed: segmentation fault, Dr.Jit 1.5 / Mitsuba 3.9, a
+    16x16 mask texture)."""
 
     def __init__(
         self,
@@ -206,11 +258,8 @@ class Renderer:
             and all(v.lights is None for v in views)
             and len({s[:2] for s in self.shapes}) == 1
         )
-        pinholes = all(
-            v.camera.kind == "perspective" and not v.camera.aperture_radius for v in views
-        )
-        freeze = freeze and not any(f.shape for f in free) and (pinholes or not batched)
-        wrap = dr.freeze if freeze else (lambda f: f)
+        freeze = freeze and not any(f.shape for f in free)
+        wrap = _Frozen if freeze else (lambda f: f)
         groups = [list(range(len(views)))] if batched else [[i] for i in range(len(views))]
         self.groups = [_Group(capture, g, material, free, wrap) for g in groups]
         self.scenes = [g.scene for g in self.groups]

@@ -4,6 +4,7 @@ captures of any size line up with renders at the smaller size."""
 from __future__ import annotations
 
 import dataclasses
+import gc
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +46,81 @@ def test_frozen_renders_equal_unfrozen_for_every_camera(kind):
         np.testing.assert_allclose(
             frozen.vjp(x, 3, 4, cotangent), plain.vjp(x, 3, 4, cotangent), rtol=1e-3, atol=1e-5
         )
+
+
+def batch_capture(kinds: list[str]) -> tuple[Capture, object]:
+    """Views of the sphere through cameras of `kinds`, each from a little further back."""
+    views = []
+    for k, kind in enumerate(kinds):
+        capture, material = sphere_capture(kind, 24, 18)
+        view = capture.views[0]
+        origin = tuple(float(c) * (1 + 0.1 * k) for c in view.camera.origin)
+        views.append(
+            dataclasses.replace(
+                view, name=f"v{k}", camera=dataclasses.replace(view.camera, origin=origin)
+            )
+        )
+    return dataclasses.replace(capture, views=views), material
+
+
+@pytest.mark.parametrize(
+    "kinds", [["thinlens"] * 3, ["orthographic"] * 2, ["thinlens", "orthographic", "perspective"]]
+)
+def test_a_batch_of_any_cameras_renders_frozen_and_right(kinds):
+    """A batch of thin-lens or orthographic cameras was not frozen (the cup's Adam step 1.3 s
+    instead of 0.3 s). Alone, its frozen primal, reverse and forward passes equal an unfrozen
+    renderer's (computed first, then freed). Once another scene with such cameras is alive it
+    runs unfrozen, for good (frozen replays beside one gave zero derivatives), still right."""
+    capture, material = batch_capture(kinds)
+    free = resolve(material, ["glaze.pigment", "glaze.roughness", "glaze.ior"])
+    rng = np.random.default_rng(1)
+    xs = [
+        np.asarray(v, np.float32) for v in ([0.2, 0.3, 0.4, 0.1, 1.5], [0.5, 0.1, 0.1, 0.05, 1.3])
+    ]
+    plain = Renderer(capture, material, free, False)
+    cotangent = rng.normal(size=plain.size).astype(np.float32)
+    expected = [
+        (plain.render(x, 3, 4), plain.vjp(x, 3, 4, cotangent), plain.jacobian(x, 3, 2)[1])
+        for x in xs
+    ]
+    del plain
+    gc.collect()
+
+    def check(renderer):
+        for x, (image, grad, jac) in zip(xs, expected, strict=True):
+            np.testing.assert_allclose(renderer.render(x, 3, 4), image, rtol=1e-4, atol=1e-6)
+            np.testing.assert_allclose(renderer.vjp(x, 3, 4, cotangent), grad, rtol=1e-3, atol=1e-5)
+            np.testing.assert_allclose(renderer.jacobian(x, 3, 2)[1], jac, rtol=1e-3, atol=1e-5)
+
+    frozen = Renderer(capture, material, free)
+    (group,) = frozen.groups
+    check(frozen)
+    assert all(f.frozen is not None for f in (group.primal, group.reverse, group.forward))
+    other = Renderer(capture.downscaled(2), material, free)
+    assert other.render(xs[0], 2, 2).max() > 0
+    check(frozen)
+    assert all(f.frozen is None for f in (group.primal, group.reverse, group.forward))
+    del other
+    gc.collect()
+    check(frozen)
+
+
+def test_a_recording_that_fails_runs_unfrozen():
+    """A thin-lens scene loaded outside any renderer and still alive is traced into a batch's
+    recording unrebuilt, and the recording fails: the renderer then runs that pass unfrozen,
+    with the same image, instead of failing the fit."""
+    import mitsuba as mi
+
+    from fit.render.scene import scene_dict
+
+    capture, material = batch_capture(["thinlens"] * 2)
+    free = resolve(material, ["glaze.roughness"])
+    stray = mi.load_dict(scene_dict(capture.scene_of(0), material, 0, 2))
+    frozen, plain = Renderer(capture, material, free), Renderer(capture, material, free, False)
+    x = np.asarray([0.2], np.float32)
+    np.testing.assert_allclose(frozen.render(x, 3, 4), plain.render(x, 3, 4), rtol=1e-4, atol=1e-6)
+    assert frozen.groups[0].primal.frozen is None
+    del stray
 
 
 @pytest.mark.parametrize("kind", ["perspective", "orthographic"])
