@@ -67,8 +67,8 @@ def batch_capture(kinds: list[str]) -> tuple[Capture, object]:
     "kinds", [["thinlens"] * 3, ["orthographic"] * 2, ["thinlens", "orthographic", "perspective"]]
 )
 def test_a_batch_of_any_cameras_renders_frozen_and_right(kinds):
-    """A batch of thin-lens or orthographic cameras was not frozen (the cup's Adam step 1.3 s
-    instead of 0.3 s). Alone, its frozen primal, reverse and forward passes equal an unfrozen
+    """A batch of thin-lens or orthographic cameras was not frozen (the cup's Adam step 1.19 s
+    instead of 0.69-0.82 s). Alone, its frozen primal, reverse and forward passes equal an unfrozen
     renderer's (computed first, then freed). Once another scene with such cameras is alive it
     runs unfrozen, for good (frozen replays beside one gave zero derivatives), still right."""
     capture, material = batch_capture(kinds)
