@@ -1027,12 +1027,13 @@ def profile_table(width: int = 160, shape: str = "sphere") -> Table:
     capture = recovery.capture(case, width, height)
     material = recovery.glaze(recovery.START)
     free = resolve(material, list(recovery.KEYS))
-    # two steps a phase: a frozen function whose literal inputs change records again at its
-    # second call, with them opaque (Dr.Jit's `auto_opaque`): one step left those kernels'
-    # compilation to the timed fit (5.6 % of it at 160x120)
+    # The warm-up runs on the timed fit's own scenes, two steps a phase: every frozen function
+    # records at its first call and again at its second. Kernels of scenes loaded after others
+    # in one process are compiled anew (Dr.Jit's kernel history: no memory or disk cache hit),
+    # so a warm-up on other scenes left 3.9-5.7 s of LLVM inside the timed fit at 160x120.
     short = tuple(p.model_copy(update={"steps": 2}) for p in DEFAULT_SCHEDULE)
-    run_schedule(Problem(capture, material, free), recovery.START, short, 0)
     problem = Problem(capture, material, free)
+    run_schedule(problem, recovery.START, short, 0)
     inside = {"primal": [0, 0.0], "reverse": [0, 0.0], "jacobian": [0, 0.0]}
     for downscale in (1, 2):
         renderer = problem.renderer(downscale)
@@ -1071,7 +1072,8 @@ def profile_table(width: int = 160, shape: str = "sphere") -> Table:
         rows=rows,
         notes=[
             "Dr.Jit's kernel history (execution, IR generation and compile times) and wall "
-            "time around each renderer call, after an untimed two-step-per-phase warm-up",
+            "time around each renderer call, after an untimed two-step-per-phase warm-up on "
+            "the same scenes (every frozen function recorded)",
             machine(),
         ],
     )
