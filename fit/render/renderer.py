@@ -234,10 +234,10 @@ class Renderer:
     orthographic cameras, which Mitsuba 3.9 does not declare to the recording, are rebuilt
     inside it (`_rebuild_sensor`). A batch of them is frozen while it is the one scene with such
     cameras alive (`_UNTRAVERSED`; the cup's five thin-lens views of 64x56: an Adam step at 8
-    spp 0.69-0.82 s frozen, 1.19 s re-traced, same run). A function whose recording fails runs unfrozen from
-    then on (`_Frozen`). Nothing is frozen when a texture is free (replaying a frozen render
-    after a bitmap's data was replaced crashed: segmentation fault, Dr.Jit 1.5 / Mitsuba 3.9, a
-    16x16 mask texture)."""
+    spp 0.69-0.82 s frozen, 1.19 s re-traced, same run). A function whose recording fails runs
+    unfrozen from then on (`_Frozen`). Nothing is frozen when a texture is free (replaying a
+    frozen render after a bitmap's data was replaced crashed: segmentation fault, Dr.Jit 1.5 /
+    Mitsuba 3.9, a 16x16 mask texture)."""
 
     def __init__(
         self,
