@@ -40,9 +40,9 @@ def _cameras(scene) -> list:
 
 #: Every live `_Group` with such sensors among its cameras. A `batch` sensor calls its
 #: children virtually, and a recorded virtual call traces every live camera of the process.
-#: Measured (Dr.Jit 1.5, Mitsuba 3.9.1): with another such group loaded before it, rebuilding
-#: the other's sensors inside the recording too, a batch's frozen reverse and forward passes
-#: replayed zero or wrong derivatives (primal passes replayed right). So a batch of such
+#: Measured (Dr.Jit 1.5, Mitsuba 3.9.1): with another such group loaded before it (its sensors
+#: rebuilt inside the recording as well, or the recording fails), a batch's frozen reverse and
+#: forward passes replayed zero or wrong derivatives (primal passes right). So a batch of such
 #: cameras is frozen only until another such group is alive at one of its calls (`_Frozen`):
 #: a fit's renderer is frozen, a second resolution's phases (and the first's after) are not.
 _UNTRAVERSED: weakref.WeakSet = weakref.WeakSet()
