@@ -8,7 +8,6 @@ import logging
 import re
 import weakref
 from contextlib import contextmanager
-from functools import partial
 
 import drjit as dr
 import mitsuba as mi
@@ -71,7 +70,7 @@ def _sensor_fov(scene) -> tuple:
     )
 
 
-def _reverse_pass(scene, grad_in, seed, spp: int, keys: tuple, x_fov: tuple = ()) -> list:
+def _reverse_pass(scene, grad_in, seed, spp: int, keys: tuple, x_fov: tuple) -> list:
     """Gradients of `<grad_in, render>` with respect to the parameters at `keys` (a frozen
     function's body: Dr.Jit inputs only, the AD state set and cleared inside)."""
     _rebuild_sensor(scene, x_fov)
@@ -86,7 +85,7 @@ def _reverse_pass(scene, grad_in, seed, spp: int, keys: tuple, x_fov: tuple = ()
     return grads
 
 
-def _forward_pass(scene, tangents: list, seed, spp: int, keys: tuple, x_fov: tuple = ()):
+def _forward_pass(scene, tangents: list, seed, spp: int, keys: tuple, x_fov: tuple):
     """The forward-mode derivative of the render along `tangents` (one per parameter at `keys`;
     a frozen function's body: Dr.Jit inputs only, the AD state set and cleared inside)."""
     _rebuild_sensor(scene, x_fov)
@@ -119,7 +118,7 @@ def _no_gc():
             gc.enable()
 
 
-def _primal(scene, seed, spp: int, x_fov: tuple = ()):
+def _primal(scene, seed, spp: int, x_fov: tuple):
     _rebuild_sensor(scene, x_fov)
     return mi.render(scene, spp=spp, seed=seed)
 
@@ -189,7 +188,7 @@ class _Group:
     """Views rendered together: one loaded scene (a `batch` sensor when several), its parameters
     and, per free parameter, the traverse keys it sets (and emitter scales' configured values)."""
 
-    def __init__(self, capture: Capture, views: list[int], material, free: list[Free], wrap):
+    def __init__(self, capture: Capture, views: list[int], material, free: list[Free], freeze):
         scene = scene_dict(capture.scene_of(views[0]), material, 0, 1)
         if len(views) > 1:
             scene["sensor"] = batch_sensor_dict([capture.views[i].camera for i in views], 1)
@@ -208,8 +207,11 @@ class _Group:
         untraversed = any(s.class_name() in _UNTRAVERSED_SENSORS for s in _cameras(self.scene))
         if untraversed:
             _UNTRAVERSED.add(self)
-        if wrap is _Frozen:
-            wrap = partial(_Frozen, alone=untraversed and len(views) > 1)
+        alone = untraversed and len(views) > 1
+
+        def wrap(fn):
+            return _Frozen(fn, alone) if freeze else fn
+
         # module functions, not bound methods: a Renderer holding its own bound methods is a
         # reference cycle, freed only by the cyclic collector, possibly inside a later recording
         self.primal, self.reverse = wrap(_primal), wrap(_reverse_pass)
@@ -259,9 +261,8 @@ class Renderer:
             and len({s[:2] for s in self.shapes}) == 1
         )
         freeze = freeze and not any(f.shape for f in free)
-        wrap = _Frozen if freeze else (lambda f: f)
         groups = [list(range(len(views)))] if batched else [[i] for i in range(len(views))]
-        self.groups = [_Group(capture, g, material, free, wrap) for g in groups]
+        self.groups = [_Group(capture, g, material, free, freeze) for g in groups]
         self.scenes = [g.scene for g in self.groups]
         self.params = [g.params for g in self.groups]
 
