@@ -25,10 +25,15 @@ MODES = ("reverse", "jacobian")
 
 
 def make_render(
-    renderer: Renderer, mode: str = "reverse", spp: int = 16, jacobian_spp: int | None = None
+    renderer: Renderer,
+    mode: str = "reverse",
+    spp: int = 16,
+    jacobian_spp: int | None = None,
+    grad_spp: int | None = None,
 ):
     """`render(x: f32[P], seed: i32[]) -> f32[N]` at `spp`, differentiable in `x` by `mode`
-    (`jacobian_spp`: see `Renderer.jacobian`)."""
+    (`jacobian_spp`: see `Renderer.jacobian`; `grad_spp`: the reverse pass's samples per pixel,
+    `spp` unless given)."""
     if mode not in MODES:
         raise ValueError(f"mode {mode!r}; choose one of {', '.join(MODES)}")
     out = jax.ShapeDtypeStruct((renderer.size,), jnp.float32)
@@ -40,7 +45,10 @@ def make_render(
 
     def _vjp(x, seed, cotangent):
         return renderer.vjp(
-            np.asarray(x, np.float32), int(seed), spp, np.asarray(cotangent, np.float32)
+            np.asarray(x, np.float32),
+            int(seed),
+            grad_spp or spp,
+            np.asarray(cotangent, np.float32),
         )
 
     def _jacobian(x, seed):

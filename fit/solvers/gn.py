@@ -21,6 +21,14 @@ class GNOptions(Options):
     """Fraction of the Gauss-Newton step taken (1: the full step to the linearised optimum)."""
     jacobian_spp: PositiveInt = 16
     """Samples per pixel of the curvature's Jacobian render (a decorrelated seed)."""
+    primal_spp: PositiveInt | None = None
+    """Samples per pixel of each step's image (the residual), its reverse pass staying at the
+    phase's `spp` (absent: `spp`). Against a clean target (a render) a gradient's noise is
+    mostly the image's noise carried through the derivative, and an image sample costs less
+    than a reverse-pass one: on the grid's sphere (128x96, three views) 128 image and 16
+    reverse samples gave 3x less variance per second than 64 and 64 (BENCHMARKS, "Where a
+    gradient's noise comes from"). Against noisy photographs the reverse pass's own noise
+    dominates (the cup: more image samples did not help)."""
     refresh: PositiveInt = 10
     """Steps between curvature updates (a Jacobian render each)."""
     damping: PositiveFloat = 1e-3
@@ -81,7 +89,8 @@ class GaussNewton(AbstractSolver):
                 f"solver gn: {problem.n_material} free components (a texture?); its curvature "
                 "renders one forward pass per component: use adam for textures"
             )
-        render = problem.render_fn("reverse", spp, downscale)
+        primal_spp = options.primal_spp or spp
+        render = problem.render_fn("reverse", primal_spp, downscale, grad_spp=spp)
         residual = residuals(problem, render, downscale, independent_gains=True)
 
         def loss(u, seed):

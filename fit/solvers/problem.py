@@ -78,11 +78,18 @@ class Problem:
             self._cache[key] = Renderer(self.at(downscale), self.material, self.free)
         return self._cache[key]
 
-    def render_fn(self, mode: str, spp: int, downscale: int = 1, jacobian_spp: int | None = None):
+    def render_fn(
+        self,
+        mode: str,
+        spp: int,
+        downscale: int = 1,
+        jacobian_spp: int | None = None,
+        grad_spp: int | None = None,
+    ):
         """`render(x, seed)` as a JAX function at this resolution (see `fit.render.make_render`)."""
         from ..render import make_render
 
-        return make_render(self.renderer(downscale), mode, spp, jacobian_spp)
+        return make_render(self.renderer(downscale), mode, spp, jacobian_spp, grad_spp)
 
     def robust_scale(self) -> float:
         """The width of a robust loss, in linear image units."""

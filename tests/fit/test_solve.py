@@ -510,6 +510,28 @@ def test_gauss_newton_converges_and_resumes(problem):
         np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-4)
 
 
+def test_gauss_newton_primal_spp_renders_the_image_apart(problem, monkeypatch):
+    """With `primal_spp` each step's image renders at that count and its reverse pass at the
+    phase's `spp` (the Jacobians at `jacobian_spp`), and the phase still lands within the 48x36
+    tolerances."""
+    renderer = problem.renderer(1)
+    calls = {"render": [], "vjp": []}
+    for name in calls:
+        method = getattr(renderer, name)
+
+        def spy(values, seed, spp, *rest, method=method, name=name):
+            calls[name].append(spp)
+            return method(values, seed, spp, *rest)
+
+        monkeypatch.setattr(renderer, name, spy)
+    start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.12, "glaze.ior": 1.4}
+    result = _gn(problem, problem.unconstrained(start), 24, spp=8, primal_spp=32)
+    # the Jacobian renders its own image at jacobian_spp (16)
+    assert calls["render"].count(32) == 24 and set(calls["render"]) <= {32, 16}
+    assert calls["vjp"] == [8] * 24
+    check(result.values)
+
+
 def test_gauss_newton_steps_gains_with_the_material():
     """With free gains the gains are Gauss-Newton coordinates like the material's: the second
     view's exposure and the pigment are recovered."""
