@@ -28,6 +28,7 @@ fov_x_deg = 39.6
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -146,8 +147,8 @@ class CaptureSettings(StrictModel):
     """RAW only: camera (as shot), none, or [r, g, b] multipliers."""
     downscale: PositiveInt = 1
     """Integer area-averaging factor for fitting (the cameras follow)."""
-    dilate: NonNegativeInt = 2
-    """Saturated pixels invalidate this many neighbouring pixels."""
+    dilate: Annotated[NonNegativeInt, Field(le=64)] = 2
+    """Saturated pixels invalidate this many neighbouring pixels (at most 64)."""
 
     @model_validator(mode="after")
     def _raw_only(self):
@@ -201,21 +202,35 @@ def load_capture(path: str | Path) -> Capture:
         path = path / "capture.toml"
     manifest = parse_model(Manifest, load_toml(path, "capture manifest"), path)
     settings = manifest.capture
+    first = {}
+    for i, spec in enumerate(manifest.views):
+        j = first.setdefault(spec.image.stem, i)
+        if j != i:
+            raise CaptureError(
+                f"{path}: views[{i}].image: {spec.image.name} has the name of views[{j}].image "
+                f"({manifest.views[j].image.name}); a view is named by its file's name: rename one"
+            )
     views, warnings, cameras = [], [], []
     for i, spec in enumerate(manifest.views):
-        if settings.encoding == "raw":
-            raw = read_raw(spec.image)
-            image, saturated = develop(raw, settings.white_balance), raw.saturated
-        else:
-            image, saturated, warned = read_linear(spec.image, settings.encoding)
-            warnings += warned
+        try:
+            if settings.encoding == "raw":
+                raw = read_raw(spec.image)
+                image, saturated = develop(raw, settings.white_balance), raw.saturated
+            else:
+                image, saturated, warned = read_linear(spec.image, settings.encoding)
+                warnings += warned
+        except CaptureError as err:  # name the manifest and the view
+            raise CaptureError(f"{path}: views[{i}].image: {err}") from None
         h, w = image.shape[:2]
         if not np.all(np.isfinite(image)):
             bad = int(np.sum(~np.all(np.isfinite(image), axis=-1)))
             warnings.append(f"{spec.image}: {bad} NaN/Inf pixels get weight 0")
         mask = None
         if spec.mask is not None:
-            mask = read_mask(spec.mask)
+            try:
+                mask = read_mask(spec.mask)
+            except CaptureError as err:
+                raise CaptureError(f"{path}: views[{i}].mask: {err}") from None
             if mask.shape != (h, w):
                 raise CaptureError(
                     f"{path}: views[{i}].mask is {mask.shape[1]}x{mask.shape[0]} but the image "
@@ -224,7 +239,8 @@ def load_capture(path: str | Path) -> Capture:
         gain = spec.gain if spec.gain is not None else 2.0 ** (spec.exposure_ev or 0.0)
         image, weight = validity(image / gain, saturated, mask, settings.dilate)
         camera = {"width": w, "height": h, **spec.camera}
-        if (camera["width"], camera["height"]) != (w, h):
+        sizes = (camera["width"], camera["height"])
+        if all(type(x) is int for x in sizes) and sizes != (w, h):
             raise CaptureError(
                 f"{path}: views[{i}].camera is {camera['width']}x{camera['height']} but "
                 f"{spec.image.name} is {w}x{h}; make them match (or drop width and height)"
@@ -238,7 +254,11 @@ def load_capture(path: str | Path) -> Capture:
                 "exposure and its mask"
             )
 
-    scene = parse_scene({**manifest.scene, "cameras": cameras}, path)
+    try:
+        scene = parse_scene({**manifest.scene, "cameras": cameras}, path)
+    except CaptureError as err:  # the cameras are the views' here: name the manifest's keys
+        message = re.sub(r"scene\.cameras\[(\d+)\]", r"views[\1].camera", str(err))
+        raise CaptureError(message) from None
     folder = path.parent.resolve()
     for key, file in _scene_files(scene):
         if not file.resolve().is_relative_to(folder):

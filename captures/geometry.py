@@ -172,6 +172,37 @@ def cup_mesh(shape: CupShape | None = None) -> MeshData:
     return MeshData.concatenate(body, _handle(shape)) if shape.handle else body
 
 
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+#: How many numbers each OBJ vertex record takes: positions 3 (4 with a weight, 6 or 7 with a
+#: colour, as some exporters write), texture coordinates 1 to 3, normals 3.
+_NUMBERS = {"v": (3, 7), "vt": (1, 3), "vn": (3, 3)}
+
+
+def _check_numbers(path: Path, number: int, words: list[str]) -> None:
+    """A vertex record's numbers: as many as its kind takes, each finite in float32 (what the
+    renderer keeps)."""
+    kind, values = words[0], words[1:]
+    low, high = _NUMBERS[kind]
+    if not low <= len(values) <= high:
+        take = f"{low}" if low == high else f"{low} to {high}"
+        raise CaptureError(
+            f"{path}: line {number}: '{kind}' has {len(values)} numbers, takes {take}; fix the "
+            "file (export it again)"
+        )
+    try:
+        floats = [float(x) for x in values]
+    except ValueError:
+        raise CaptureError(
+            f"{path}: line {number}: '{kind}' holds {' '.join(values)!r}, not numbers; fix the "
+            "file (export it again)"
+        ) from None
+    if not all(abs(x) <= _FLOAT32_MAX for x in floats):  # NaN compares False
+        raise CaptureError(
+            f"{path}: line {number}: '{kind}' holds a value that is not finite in float32 "
+            f"({' '.join(values)}); fix the file (export it again)"
+        )
+
+
 def check_obj_has_uvs(path: str | Path) -> None:
     """Raise `CaptureError` unless the OBJ at `path` is a mesh the renderer can load: faces of 3
     or more corners whose vertex, texture and normal indices exist, and texture coordinates on
@@ -193,6 +224,7 @@ def check_obj_has_uvs(path: str | Path) -> None:
             continue
         if words[0] in counts:
             counts[words[0]] += 1
+            _check_numbers(path, number, words)
         elif words[0] == "f":
             faces += 1
             corners = words[1:]

@@ -36,13 +36,32 @@ def read_image(path: str | Path) -> np.ndarray:
         raise CaptureError(f"{path}: no such image file; check the path")
     if path.is_dir():
         raise CaptureError(f"{path}: is a folder, not an image; give an image file")
+    pixels, problem = _decode(path)
+    if problem is not None:
+        raise CaptureError(f"{path}: {problem}")
+    return pixels
+
+
+def _first_line(error: str) -> str:
+    """OpenImageIO's error text, first line (libpng and others repeat themselves below)."""
+    lines = [line.strip() for line in error.strip().splitlines() if line.strip()]
+    return lines[0] if lines else "no reason given"
+
+
+def _decode(path: Path) -> tuple[np.ndarray | None, str | None]:
+    """The pixels as float32 (H, W, C), or why they cannot be read (one line)."""
     buf = oiio.ImageBuf(str(path))
     if buf.has_error:
-        raise CaptureError(f"{path}: cannot read image ({buf.geterror()}); convert it")
+        oiio.geterror()  # the same error, pending globally: cleared
+        return None, f"cannot read image ({_first_line(buf.geterror())}); convert it"
     pixels = buf.get_pixels(oiio.FLOAT)
     if pixels is None or buf.has_error:
-        raise CaptureError(f"{path}: cannot decode image ({buf.geterror()}); convert it")
-    return np.asarray(pixels, dtype=np.float32)
+        oiio.geterror()
+        return None, (
+            f"cannot decode its pixels ({_first_line(buf.geterror())}): the file is truncated "
+            "or corrupt; copy or export it again"
+        )
+    return np.asarray(pixels, dtype=np.float32), None
 
 
 def write_image(path: str | Path, linear: np.ndarray) -> Path:
@@ -151,7 +170,8 @@ TEXTURE_SUFFIXES = (
 
 def image_problem(path: str | Path) -> str | None:
     """Why `path` is not an image file the renderer can load (None when it is one): missing, a
-    folder, an unsupported type, or not decodable (its header is read, not its pixels)."""
+    folder, an unsupported type, not decodable (truncated, corrupt) or holding values that are
+    not finite."""
     path = Path(path)
     if path.is_dir():
         return f"'{path.name}' is a folder, not an image; give an image file"
@@ -167,4 +187,10 @@ def image_problem(path: str | Path) -> str | None:
     reader.close()
     if spec.width < 1 or spec.height < 1 or spec.nchannels < 1:
         return f"'{path.name}' has no pixels; give another image"
+    pixels, problem = _decode(path)
+    if problem is not None:
+        return f"'{path.name}': {problem}"
+    bad = int(np.count_nonzero(~np.isfinite(pixels)))
+    if bad:
+        return f"'{path.name}' has {bad} values that are not finite (NaN or Inf); fix the image"
     return None

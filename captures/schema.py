@@ -189,6 +189,14 @@ class CameraSpec(StrictModel):
         given = self.model_fields_set
         if self.origin == self.target:
             raise FieldError("target", "equals origin; the camera needs a viewing direction")
+        view, up = np.subtract(self.target, self.origin), np.asarray(self.up, float)
+        if np.linalg.norm(np.cross(view, up)) <= 1e-6 * np.linalg.norm(view) * np.linalg.norm(up):
+            raise FieldError(
+                "up",
+                f"{list(self.up)} is zero or along the viewing direction (origin to target); "
+                "give a direction across it, e.g. [0, 0, 1] for a camera that does not look "
+                "straight up or down",
+            )
         if self.type == "perspective" and "fov_x_deg" not in given:
             raise FieldError("fov_x_deg", "missing; add it (a perspective camera needs it)")
         if self.type == "orthographic":

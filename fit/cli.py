@@ -545,6 +545,9 @@ def fit(
     except KeyboardInterrupt:
         forget_out()
         raise _fail("interrupted before the fit began: nothing written", 130) from None
+    except Exception:  # an internal error: reported by the caller, no empty run folder left
+        forget_out()
+        raise
     with _progress() as bar:
         tasks = [
             bar.add_task(
@@ -584,6 +587,10 @@ def fit(
             forget_out()
             _say("interrupted:", "yellow", f"{err}; nothing written")
             raise typer.Exit(130) from None
+        except Exception:  # an internal error (a checkpoint already saved is kept)
+            bar.stop()
+            forget_out()
+            raise
     solvers = "+".join(p.solver for p in cfg.phases)
     table = RichTable(title=escape(f"{config}: {solvers}, {summary['wall_time_s']:.1f} s"))
     table.add_column("parameter", no_wrap=True)

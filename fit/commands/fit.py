@@ -80,11 +80,18 @@ def check_output(out: Path, cfg: FitConfig, resume: bool, force: bool) -> None:
             )
         if not (out / "checkpoint.npz").exists():
             raise InputError(f"--resume: no checkpoint in {out}; run without --resume")
-    elif out.exists() and any(out.iterdir()) and not force:
-        raise InputError(
-            f"--out {out}: exists and is not empty; choose another folder, --resume a killed "
-            "run, or --force to replace its results"
-        )
+        Checkpoint(out / "checkpoint.npz").load()  # unreadable: refused before any work
+    elif out.exists() and any(out.iterdir()):
+        if not force:
+            raise InputError(
+                f"--out {out}: exists and is not empty; choose another folder, --resume a "
+                "killed run, or --force to replace its results"
+            )
+        if not any((out / name).is_file() for name in ("summary.json", "checkpoint.npz")):
+            raise InputError(
+                f"--out {out}: is not empty and holds no layerfit run (no summary.json or "
+                "checkpoint.npz): --force replaces only a run's results; choose another folder"
+            )
     try:
         out.mkdir(parents=True, exist_ok=True)
         write_text(out / ".write-test", "")
@@ -118,6 +125,12 @@ class Prepared:
     start: dict
 
 
+#: The fewest pixels a side of a view at any phase's resolution.
+MIN_PIXELS = 4
+#: A phase's options that set a render's samples per pixel, besides its `spp`.
+SPP_OPTIONS = ("primal_spp", "jacobian_spp")
+
+
 def prepare(cfg: FitConfig, holdout: int | None = None) -> Prepared:
     """Open the capture and check everything the fit needs against it (holdout, free keys,
     `[truth]` sizes, each phase's downscale): any problem is a one-line `InputError` before
@@ -140,9 +153,29 @@ def prepare(cfg: FitConfig, holdout: int | None = None) -> Prepared:
     problem = Problem(fitted, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)
     for k, phase in enumerate(cfg.phases):  # fail before any work, naming the phase
         try:
-            problem.at(phase.downscale)
+            views = problem.at(phase.downscale).views
         except CaptureError as err:
             raise CaptureError(f"{cfg.path}: fit.phases[{k}].downscale: {err}") from None
+        h, w = min(v.image.shape[0] for v in views), min(v.image.shape[1] for v in views)
+        if min(h, w) < MIN_PIXELS:
+            raise InputError(
+                f"{cfg.path}: fit.phases[{k}].downscale = {phase.downscale} (with fit.downscale "
+                f"= {cfg.downscale}) leaves a {w}x{h} view: at least {MIN_PIXELS} pixels a side; "
+                "give a smaller factor"
+            )
+        pixels = sum(v.image.shape[0] * v.image.shape[1] for v in views)
+        spp = max(phase.spp, *(getattr(phase.options, name, None) or 0 for name in SPP_OPTIONS))
+        if pixels * spp >= 2**32:
+            raise InputError(
+                f"{cfg.path}: fit.phases[{k}]: {spp} spp over {pixels} pixels is more than "
+                "Mitsuba's 2^32 samples a render; lower the phase's spp"
+            )
+    pixels = sum(v.image.shape[0] * v.image.shape[1] for v in fitted.views)
+    if pixels * cfg.uncertainty_spp >= 2**32:
+        raise InputError(
+            f"{cfg.path}: fit.uncertainty_spp = {cfg.uncertainty_spp} over {pixels} pixels is "
+            "more than Mitsuba's 2^32 samples a render; lower it"
+        )
     return Prepared(capture, held, free, problem, start_values(free))
 
 
@@ -267,10 +300,16 @@ def _write(
 
 
 def _outputs(out: Path) -> dict[Path, int]:
-    """The images a fit writes into its run folder that are there now (report PNGs, texture
-    EXRs), with their inodes."""
-    paths = [*out.glob("report/*.png"), *out.glob("*.exr")]
-    return {p: p.stat().st_ino for p in paths if p.is_file()}
+    """The images a fit writes into its run folder that are there now, with their inodes: the
+    report's PNGs, the preset's texture files (`preset.<key>.*`) and fitted textures named by a
+    parameter of the earlier run's summary (`<key>.exr`). Nothing else a user keeps there."""
+    try:
+        keys = set(json.loads((out / "summary.json").read_text())["values"])
+    except (OSError, ValueError, KeyError, TypeError):
+        keys = set()
+    paths = [*out.glob("report/*.png"), *out.glob("preset.*.*")]
+    paths += [p for p in out.glob("*.exr") if p.stem in keys]
+    return {p: p.stat().st_ino for p in paths if p.is_file() and p.name != "preset.toml"}
 
 
 def _panels(cfg, capture, held, problem, result) -> list[ViewPanel]:

@@ -40,6 +40,14 @@ class FitSettings(StrictModel):
     true, an RGB gain (unknown exposure and white balance); "exposure", one grey gain (one
     camera, its white balance fixed)."""
 
+    @field_validator("free")
+    @classmethod
+    def _unique(cls, value):
+        twice = sorted({k for k in value if value.count(k) > 1})
+        if twice:
+            raise ValueError(f"lists {', '.join(twice)} more than once; list each key once")
+        return value
+
     @field_validator("gains", mode="before")
     @classmethod
     def _gains(cls, value):

@@ -13,10 +13,12 @@ import io
 import json
 import os
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
 
+from captures.errors import InputError
 from captures.files import atomic_path
 
 #: Seconds of work between checkpoints (`LAYERFIT_CHECKPOINT_SECONDS` overrides, for tests).
@@ -74,14 +76,21 @@ class Checkpoint:
         """The saved state, or None when there is no checkpoint."""
         if not self.path.exists():
             return None
-        with np.load(self.path) as data:
-            state = json.loads(str(data["meta"]))
-            n = state.pop("n_leaves", None)
-            for key in data.files:
-                if key != "meta" and not key.startswith("leaf_"):
-                    state[key] = data[key]
-            if n is not None:
-                state["leaves"] = [data[f"leaf_{i}"] for i in range(n)]
+        try:
+            with np.load(self.path) as data:
+                state = json.loads(str(data["meta"]))
+                n = state.pop("n_leaves", None)
+                for key in data.files:
+                    if key != "meta" and not key.startswith("leaf_"):
+                        state[key] = data[key]
+                if n is not None:
+                    state["leaves"] = [data[f"leaf_{i}"] for i in range(n)]
+        except (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile) as err:
+            raise InputError(
+                f"{self.path}: unreadable checkpoint ({type(err).__name__}: "
+                f"{str(err).splitlines()[0] if str(err) else 'empty or cut short'}); run without "
+                "--resume (and with --force) to start again"
+            ) from None
         return state
 
     def remove(self) -> None:

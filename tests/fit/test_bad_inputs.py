@@ -199,6 +199,15 @@ def view_image(value: float):
     return setup
 
 
+def truncated_png(d: Path, shape=(4, 8)) -> bytes:
+    """The first half of a valid noisy PNG's bytes (its header reads, its pixels do not)."""
+    rng = np.random.default_rng(0)
+    write_image(d / "whole.png", rng.random((*shape, 3)).astype(np.float32))
+    data = (d / "whole.png").read_bytes()
+    (d / "whole.png").unlink()
+    return data[: len(data) // 2]
+
+
 GARBAGE = b"\x89not an image at all\xff\xfe"
 TEX = "pigment = [0.1, 0.22, 0.55]"
 ENV = "environment = [0.05, 0.05, 0.06]"
@@ -273,6 +282,22 @@ CASES: list[Case] = [
         ("m.obj", "line 7", "range"),
     ),
     (
+        "obj-vertex-two-numbers",
+        lambda d: (
+            (d / "m.obj").write_text(OBJ.replace("v 0 0 0", "v 0 0"))
+            and render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
+        ),
+        ("m.obj", "line 1", "2 numbers"),
+    ),
+    (
+        "obj-vertex-nan",
+        lambda d: (
+            (d / "m.obj").write_text(OBJ.replace("v 1 0 0", "v 1 0 nan"))
+            and render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
+        ),
+        ("m.obj", "line 2", "not finite"),
+    ),
+    (
         "obj-no-uvs",
         lambda d: (
             (d / "m.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
@@ -328,6 +353,22 @@ CASES: list[Case] = [
             and render_cfg(ENV, 'environment = {type = "envmap", file = "sky.exr"}')(d)
         ),
         ("render.toml", "scene.environment.file", "sky.exr"),
+    ),
+    (
+        "envmap-truncated",
+        lambda d: (
+            (d / "sky.png").write_bytes(truncated_png(d))
+            and render_cfg(ENV, 'environment = {type = "envmap", file = "sky.png"}')(d)
+        ),
+        ("render.toml", "scene.environment.file", "sky.png", "truncated"),
+    ),
+    (
+        "envmap-nan",
+        lambda d: (
+            write_image(d / "sky.exr", np.full((4, 8, 3), np.nan, np.float32))
+            and render_cfg(ENV, 'environment = {type = "envmap", file = "sky.exr"}')(d)
+        ),
+        ("render.toml", "scene.environment.file", "sky.exr", "not finite"),
     ),
     (
         "envmap-folder",
@@ -616,6 +657,53 @@ CASES: list[Case] = [
         ("capture.toml", "views[0].camera"),
     ),
     (
+        "manifest-camera-width-string",
+        manifest("width = 16", 'width = "16"'),
+        ("capture.toml", "views[0].camera.width"),
+    ),
+    (
+        "manifest-camera-fov-string",
+        manifest("fov_x_deg = 36.0", 'fov_x_deg = "wide"'),
+        ("capture.toml", "views[0].camera.fov_x_deg"),
+    ),
+    (
+        "manifest-camera-up-along-view",
+        manifest("up = [0.0, 0.0, 1.0]", "up = [0.0, 5.0, -1.2]"),
+        ("capture.toml", "views[0].camera.up", "viewing direction"),
+    ),
+    (
+        "manifest-camera-up-zero",
+        manifest("up = [0.0, 0.0, 1.0]", "up = [0.0, 0.0, 0.0]"),
+        ("capture.toml", "views[0].camera.up"),
+    ),
+    (
+        "manifest-two-views-one-name",
+        manifest(
+            "[truth]",
+            '[[views]]\nimage = "sub/view_00.exr"\n[views.camera]\norigin = [0.0, 5.0, 1.2]\n'
+            "target = [0.0, 0.0, 0.0]\nfov_x_deg = 36.0\n\n[truth]",
+            setup=lambda d: (
+                (d / "cap" / "sub").mkdir(),
+                shutil.copy(d / "cap" / "view_00.exr", d / "cap" / "sub"),
+            ),
+        ),
+        ("capture.toml", "views[1].image", "rename"),
+    ),
+    (
+        "manifest-dilate-huge",
+        manifest('encoding = "linear"', 'encoding = "linear"\ndilate = 100000'),
+        ("capture.toml", "dilate"),
+    ),
+    (
+        "manifest-view-truncated",
+        manifest(
+            'image = "view_00.exr"',
+            'image = "t.png"',
+            setup=lambda d: (d / "cap" / "t.png").write_bytes(truncated_png(d, (12, 16))),
+        ),
+        ("capture.toml", "views[0].image", "t.png", "truncated"),
+    ),
+    (
         "manifest-scene-cameras",
         manifest("max_depth = 8", "max_depth = 8\ncameras = []"),
         ("capture.toml", "scene.cameras"),
@@ -784,6 +872,32 @@ CASES: list[Case] = [
         ),
         ("capture.toml", "truth.glaze.pigment", "3 numbers"),
     ),
+    (
+        "fit-free-twice",
+        fit_cfg('free = ["glaze.roughness"]', 'free = ["glaze.roughness", "glaze.roughness"]'),
+        ("fit.toml", "fit.free", "more than once"),
+    ),
+    ("fit-spp-huge", fit_cfg("spp = 1\n", "spp = 100000000\n"), ("fit.toml", "phases[0]", "2^32")),
+    (
+        "fit-uncertainty-spp-huge",
+        fit_cfg("uncertainty_spp = 4", "uncertainty_spp = 100000000"),
+        ("fit.toml", "uncertainty_spp", "2^32"),
+    ),
+    (
+        "fit-phase-downscale-huge",
+        fit_cfg("spp = 1\n", "spp = 1\ndownscale = 4\n"),
+        ("fit.toml", "fit.phases[0].downscale", "4 pixels"),
+    ),
+    (
+        "fit-resume-corrupt-checkpoint",
+        fit_args(
+            "--out",
+            out("run"),
+            "--resume",
+            setup=lambda d: ((d / "run").mkdir(), (d / "run" / "checkpoint.npz").write_bytes(b"")),
+        ),
+        ("checkpoint.npz", "unreadable"),
+    ),
     ("fit-holdout-all", fit_args("--out", out("run"), "--holdout", "1"), ("holdout",)),
     ("fit-holdout-neg", fit_args("--out", out("run"), "--holdout", "-1"), ("--holdout",)),
     ("fit-out-file", fit_args("--out", out("f"), setup=write("f", "x")), ("--out", "is a file")),
@@ -800,6 +914,16 @@ CASES: list[Case] = [
             setup=lambda d: ((d / "run").mkdir(), (d / "run" / "keep.txt").write_text("x")),
         ),
         ("--out", "--force"),
+    ),
+    (
+        "fit-force-not-a-run",
+        fit_args(
+            "--out",
+            out("run"),
+            "--force",
+            setup=lambda d: ((d / "run").mkdir(), (d / "run" / "my_photo.exr").write_text("x")),
+        ),
+        ("--out", "no layerfit run"),
     ),
     ("fit-out-holds-inputs", fit_args("--out", lambda d: d, "--force"), ("--out", "inputs")),
     ("fit-resume-nothing", fit_args("--out", out("run"), "--resume"), ("--resume", "checkpoint")),
@@ -918,16 +1042,20 @@ def test_one_view_fit_writes_valid_json(base, tmp_path, capsys):
     summary = json.loads((work / "run" / "summary.json").read_text(), parse_constant=refuse)
     assert summary["truth"]["glaze.roughness"] == 0.0625
     # --force over it: what the earlier run wrote and this one does not is gone, the user's own
-    # files stay, nothing of this run is missing
+    # files stay (an image too), nothing of this run is missing
     (work / "run" / "report" / "view-07-gone.png").write_bytes(b"old")
-    (work / "run" / "glaze.mask.texture.exr").write_bytes(b"old")
+    (work / "run" / "glaze.mask.texture.exr").write_bytes(b"old")  # as if fitted back then
+    summary["values"]["glaze.mask.texture"] = 0.5
+    (work / "run" / "summary.json").write_text(json.dumps(summary))
     (work / "run" / "notes.txt").write_text("mine")
+    (work / "run" / "my_photo.exr").write_bytes(b"mine")
     written = sorted(p.name for p in (work / "run").rglob("*"))
     code, _, stderr = run(["fit", work / "fit.toml", "--out", work / "run", "--force"], capsys)
     assert code == 0, stderr
     assert not (work / "run" / "report" / "view-07-gone.png").exists()
     assert not (work / "run" / "glaze.mask.texture.exr").exists()
     assert (work / "run" / "notes.txt").read_text() == "mine"
+    assert (work / "run" / "my_photo.exr").read_bytes() == b"mine"
     expected = [n for n in written if n not in ("view-07-gone.png", "glaze.mask.texture.exr")]
     assert sorted(p.name for p in (work / "run").rglob("*")) == expected
 
