@@ -50,7 +50,9 @@ def _first_line(error: str) -> str:
 
 def _decode(path: Path) -> tuple[np.ndarray | None, str | None]:
     """The pixels as float32 (H, W, C), or why they cannot be read (one line)."""
-    buf = oiio.ImageBuf(str(path))
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)  # colours as stored, not times alpha
+    buf = oiio.ImageBuf(str(path), 0, 0, config)
     if buf.has_error:
         oiio.geterror()  # the same error, pending globally: cleared
         return None, f"cannot read image ({_first_line(buf.geterror())}); convert it"
@@ -122,13 +124,21 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
     spec = buf.spec()
     buf.close()
     pixels = read_image(path)
-    warnings = []
+    warnings: list[str] = []
     integer = spec.format.basetype in (oiio.UINT8, oiio.UINT16, oiio.UINT32)
+    channels = pixels.shape[2]
+    if channels > 4:
+        raise CaptureError(f"{path}: {channels} channels; expected grey, RGB or RGBA")
+    if channels in (2, 4):  # an alpha channel: the colours are read as stored, alpha dropped
+        seethrough = int(np.count_nonzero(pixels[..., -1] < 1.0))
+        if seethrough:
+            warnings.append(
+                f"{path}: its alpha channel is ignored ({seethrough} pixels not opaque); give "
+                "a view's mask as its own image (views[i].mask)"
+            )
+        pixels = pixels[..., :-1]
     if pixels.shape[2] == 1:
         pixels = np.repeat(pixels, 3, axis=2)
-    elif pixels.shape[2] == 2 or pixels.shape[2] > 4:
-        raise CaptureError(f"{path}: {pixels.shape[2]} channels; expected grey, RGB or RGBA")
-    pixels = pixels[..., :3]
     if integer:
         saturated = np.any(pixels >= 1.0, axis=-1)
     else:  # half floats clamp at HALF_MAX: a pixel there is clipped, not measured

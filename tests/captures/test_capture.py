@@ -99,6 +99,28 @@ def test_readers_decode_as_declared(tmp_path):
     assert "8-bit data declared linear" in warnings[0]
 
 
+@pytest.mark.parametrize("channels", [2, 4])
+def test_alpha_is_dropped_not_multiplied_in(tmp_path, channels):
+    """A PNG with a half-transparent alpha channel (grey + alpha or RGBA) reads as the colours
+    it stores, not premultiplied by alpha, with a warning that alpha is ignored."""
+    import OpenImageIO as oiio
+
+    stored = np.zeros((4, 6, channels), np.uint16)
+    stored[..., :-1] = 30000
+    stored[..., -1] = 32768  # alpha 0.5
+    path = str(tmp_path / "a.png")
+    out = oiio.ImageOutput.create(path)
+    spec = oiio.ImageSpec(6, 4, channels, oiio.UINT16)
+    spec.attribute("oiio:UnassociatedAlpha", 1)  # store these numbers as they are
+    out.open(path, spec)
+    out.write_image(stored)
+    out.close()
+    pixels, _, warnings = read_linear(path, "linear")
+    assert pixels.shape == (4, 6, 3)
+    np.testing.assert_allclose(pixels, 30000 / 65535, rtol=1e-6)
+    assert len(warnings) == 1 and "alpha channel is ignored (24 pixels" in warnings[0]
+
+
 def test_validity_weights():
     image = np.full((20, 20, 3), 0.5, np.float32)
     image[2, 2] = np.nan
