@@ -152,7 +152,11 @@ class ObjSpec(StrictModel):
 def _geometry_shorthand(value):
     """ "sphere", "cup" or an OBJ file name for its table."""
     if isinstance(value, str):
-        return {"type": value} if value in ("sphere", "cup") else {"type": "obj", "file": value}
+        if value in ("sphere", "cup"):
+            return {"type": value}
+        if not value.lower().endswith(".obj"):
+            raise ValueError(f"got {value!r}; give sphere, cup or the name of an .obj file")
+        return {"type": "obj", "file": value}
     return value
 
 

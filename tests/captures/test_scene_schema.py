@@ -205,7 +205,8 @@ def rect_light(**extra) -> dict:
 @pytest.mark.parametrize(
     "change, message",
     [
-        ({"geometry": "cube"}, "scene.geometry.file: 'cube' does not exist"),
+        ({"geometry": "cube"}, "scene.geometry: got 'cube'; give sphere, cup or the name"),
+        ({"geometry": "cube.obj"}, "scene.geometry.file: 'cube.obj' does not exist"),
         ({"geometry": {"type": "cup", "wall": 0.5}}, "scene.geometry: cup: wall = 0.5"),
         ({"cameras": []}, "scene.cameras: got []; should have at least 1 item"),
         (

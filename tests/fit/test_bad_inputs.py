@@ -269,6 +269,11 @@ CASES: list[Case] = [
         ("render.toml", "environment"),
     ),
     (
+        "geometry-misspelt",
+        render_cfg('geometry = "sphere"', 'geometry = "spehre"'),
+        ("render.toml", "geometry", "sphere, cup"),
+    ),
+    (
         "obj-missing",
         render_cfg('geometry = "sphere"', 'geometry = "none.obj"'),
         ("render.toml", "geometry", "none.obj"),
