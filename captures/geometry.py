@@ -178,7 +178,7 @@ _FLOAT32_MAX = float(np.finfo(np.float32).max)
 _NUMBERS = {"v": (3, 7), "vt": (1, 3), "vn": (3, 3)}
 
 
-def _check_numbers(path: Path, number: int, words: list[str]) -> None:
+def _check_numbers(path: Path, number: int, words: list[str]) -> list[float]:
     """A vertex record's numbers: as many as its kind takes, each finite in float32 (what the
     renderer keeps)."""
     kind, values = words[0], words[1:]
@@ -201,6 +201,7 @@ def _check_numbers(path: Path, number: int, words: list[str]) -> None:
             f"{path}: line {number}: '{kind}' holds a value that is not finite in float32 "
             f"({' '.join(values)}); fix the file (export it again)"
         )
+    return floats
 
 
 def check_obj_has_uvs(path: str | Path) -> None:
@@ -218,13 +219,16 @@ def check_obj_has_uvs(path: str | Path) -> None:
         raise CaptureError(f"{path}: cannot read ({err.strerror})") from None
     counts = {"v": 0, "vt": 0, "vn": 0}
     faces, faces_with_vt = 0, 0
+    positions, triangles = [], []  # every vertex; each face's first three corners (0-based)
     for number, line in enumerate(text.splitlines(), 1):
         words = line.split()
         if not words:
             continue
         if words[0] in counts:
             counts[words[0]] += 1
-            _check_numbers(path, number, words)
+            numbers = _check_numbers(path, number, words)
+            if words[0] == "v":
+                positions.append(numbers[:3])
         elif words[0] == "f":
             faces += 1
             corners = words[1:]
@@ -249,10 +253,20 @@ def check_obj_has_uvs(path: str | Path) -> None:
                             f"{path}: line {number}: face index {i} ({kind}) is out of range "
                             f"(1 to {counts[kind]} at that line); fix the file (export it again)"
                         )
+            first = [int(c.split("/")[0]) for c in corners[:3]]
+            triangles.append([i - 1 if i > 0 else counts["v"] + i for i in first])
             if all(len(c.split("/")) > 1 and c.split("/")[1] != "" for c in corners):
                 faces_with_vt += 1
     if faces == 0:
         raise CaptureError(f"{path}: the OBJ has no faces; give a triangle mesh with UVs")
+    p, t = np.asarray(positions, np.float64), np.asarray(triangles)
+    area = np.linalg.norm(np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]]), axis=1)
+    extent = float(np.ptp(p[t.ravel()], axis=0).max())
+    if not np.any(area > 1e-12 * extent**2):
+        raise CaptureError(
+            f"{path}: every one of its {faces} faces has zero area (its corners on one point or "
+            "line): nothing to render; check the export"
+        )
     if counts["vt"] == 0 or faces_with_vt < faces:
         raise CaptureError(
             f"{path}: the OBJ has no texture coordinates on {faces - faces_with_vt} of {faces} "

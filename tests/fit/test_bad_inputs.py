@@ -303,6 +303,14 @@ CASES: list[Case] = [
         ("m.obj", "line 2", "not finite"),
     ),
     (
+        "obj-zero-area",
+        lambda d: (
+            (d / "m.obj").write_text(OBJ.replace("v 0 1 0", "v 2 0 0"))
+            and render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
+        ),
+        ("m.obj", "zero area"),
+    ),
+    (
         "obj-no-uvs",
         lambda d: (
             (d / "m.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
