@@ -23,6 +23,7 @@ import math
 import signal
 import threading
 import time
+import tomllib
 from collections.abc import Callable
 from pathlib import Path
 
@@ -30,7 +31,7 @@ import numpy as np
 
 from captures import CaptureError, InputError, open_capture
 from captures.capture import Capture
-from captures.images import write_image
+from captures.images import TEXTURE_SUFFIXES, write_image
 
 from ..config import FitConfig
 from ..material import Free, provenance, resolve, save_preset, start_values, to_physical
@@ -300,16 +301,31 @@ def _write(
 
 
 def _outputs(out: Path) -> dict[Path, int]:
-    """The images a fit writes into its run folder that are there now, with their inodes: the
-    report's PNGs, the preset's texture files (`preset.<key>.*`) and fitted textures named by a
-    parameter of the earlier run's summary (`<key>.exr`). Nothing else a user keeps there."""
+    """The images an earlier fit wrote into this run folder that are there now, with their
+    inodes: the report's PNGs, the texture files its `preset.toml` names, and fitted textures
+    named by a parameter of its `summary.json` (`<key>.exr`). Nothing else a user keeps there."""
     try:
         keys = set(json.loads((out / "summary.json").read_text())["values"])
     except (OSError, ValueError, KeyError, TypeError):
         keys = set()
-    paths = [*out.glob("report/*.png"), *out.glob("preset.*.*")]
+    try:
+        preset = tomllib.loads((out / "preset.toml").read_text())
+    except (OSError, ValueError):
+        preset = {}
+    paths = [*out.glob("report/*.png"), *(out / name for name in _images_named(preset))]
     paths += [p for p in out.glob("*.exr") if p.stem in keys]
-    return {p: p.stat().st_ino for p in paths if p.is_file() and p.name != "preset.toml"}
+    return {p: p.stat().st_ino for p in paths if p.is_file()}
+
+
+def _images_named(value) -> list[str]:
+    """Every string in a TOML document that is the bare name (no folder) of an image file."""
+    if isinstance(value, dict):
+        return [s for v in value.values() for s in _images_named(v)]
+    if isinstance(value, list):
+        return [s for v in value for s in _images_named(v)]
+    if isinstance(value, str) and value and Path(value).name == value:
+        return [value] if Path(value).suffix.lower() in TEXTURE_SUFFIXES else []
+    return []
 
 
 def _panels(cfg, capture, held, problem, result) -> list[ViewPanel]:

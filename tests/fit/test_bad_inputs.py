@@ -1062,14 +1062,19 @@ def test_one_view_fit_writes_valid_json(base, tmp_path, capsys):
     (work / "run" / "summary.json").write_text(json.dumps(summary))
     (work / "run" / "notes.txt").write_text("mine")
     (work / "run" / "my_photo.exr").write_bytes(b"mine")
+    (work / "run" / "preset.glaze.old.png").write_bytes(b"old")  # a texture its preset named
+    with open(work / "run" / "preset.toml", "a") as preset:
+        preset.write('\n[extra]\ntexture = "preset.glaze.old.png"\n')
     written = sorted(p.name for p in (work / "run").rglob("*"))
     code, _, stderr = run(["fit", work / "fit.toml", "--out", work / "run", "--force"], capsys)
     assert code == 0, stderr
     assert not (work / "run" / "report" / "view-07-gone.png").exists()
     assert not (work / "run" / "glaze.mask.texture.exr").exists()
+    assert not (work / "run" / "preset.glaze.old.png").exists()
     assert (work / "run" / "notes.txt").read_text() == "mine"
     assert (work / "run" / "my_photo.exr").read_bytes() == b"mine"
-    expected = [n for n in written if n not in ("view-07-gone.png", "glaze.mask.texture.exr")]
+    gone = ("view-07-gone.png", "glaze.mask.texture.exr", "preset.glaze.old.png")
+    expected = [n for n in written if n not in gone]
     assert sorted(p.name for p in (work / "run").rglob("*")) == expected
 
 
