@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -48,15 +51,36 @@ def _first_line(error: str) -> str:
     return lines[0] if lines else "no reason given"
 
 
+@contextlib.contextmanager
+def _c_stderr_silenced():
+    """Keep C libraries from writing to the process's stderr (libpng prints each error there
+    too; OpenImageIO hands it back, and it is reported once, in the error line)."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no real stderr (e.g. captured): nothing to silence
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
 def _decode(path: Path) -> tuple[np.ndarray | None, str | None]:
     """The pixels as float32 (H, W, C), or why they cannot be read (one line)."""
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)  # colours as stored, not times alpha
-    buf = oiio.ImageBuf(str(path), 0, 0, config)
-    if buf.has_error:
+    with _c_stderr_silenced():
+        buf = oiio.ImageBuf(str(path), 0, 0, config)
+        opened = not buf.has_error
+        pixels = buf.get_pixels(oiio.FLOAT) if opened else None
+    if not opened:
         oiio.geterror()  # the same error, pending globally: cleared
         return None, f"cannot read image ({_first_line(buf.geterror())}); convert it"
-    pixels = buf.get_pixels(oiio.FLOAT)
     if pixels is None or buf.has_error:
         oiio.geterror()
         return None, (
