@@ -205,6 +205,7 @@ class _Group:
         self.params.keep([k for ks in self.targets for k in ks])
         self.fov = _sensor_fov(self.scene)
         untraversed = any(s.class_name() in _UNTRAVERSED_SENSORS for s in _cameras(self.scene))
+        self.untraversed = untraversed
         if untraversed:
             _UNTRAVERSED.add(self)
         alone = untraversed and len(views) > 1
@@ -263,6 +264,9 @@ class Renderer:
         freeze = freeze and not any(f.shape for f in free)
         groups = [list(range(len(views)))] if batched else [[i] for i in range(len(views))]
         self.groups = [_Group(capture, g, material, free, freeze) for g in groups]
+        #: A group with thin-lens or orthographic cameras: its batch is frozen only while no
+        #: other such group is alive (`Problem.release` frees this one when it is done)
+        self.untraversed = any(g.untraversed for g in self.groups)
         self.scenes = [g.scene for g in self.groups]
         self.params = [g.params for g in self.groups]
 
