@@ -134,6 +134,42 @@ def test_a_schedule_frees_finished_thin_lens_scenes(kind):
         assert kept
 
 
+class _Replays:
+    """A stand-in frozen function: records at its first two calls (right), then replays
+    `replayed(x)`."""
+
+    def __init__(self, fn, replayed):
+        self.fn, self.replayed, self.n_recordings = fn, replayed, 0
+
+    def __call__(self, x):
+        if self.n_recordings < 2:
+            self.n_recordings += 1
+            return self.fn(x)
+        return self.replayed(x)
+
+
+@pytest.mark.parametrize("wrong", [False, True])
+def test_a_batchs_first_replays_are_checked_against_plain_calls(wrong):
+    """A frozen batch of thin-lens cameras (five of them on a glazed sphere) replayed wrong
+    gradients from its third call: its first replays are compared with a plain call, and a
+    mismatch runs it plainly for good (the plain answer returned); a right one stays frozen."""
+    from fit.render.renderer import CHECKED_REPLAYS, _Frozen
+
+    def fn(x):
+        return [np.asarray(x) * 2.0]
+
+    frozen = _Frozen(fn, alone=True)
+    frozen.frozen = _Replays(fn, (lambda x: [np.asarray(x) * 3.0]) if wrong else fn)
+    plain_calls = []
+    frozen.fn = lambda x: plain_calls.append(x) or fn(x)
+    for i in range(2 + CHECKED_REPLAYS + 2):
+        np.testing.assert_allclose(frozen(np.float32(i + 1))[0], 2.0 * (i + 1))
+    if wrong:
+        assert frozen.frozen is None and len(plain_calls) == 4  # from the first replay on
+    else:
+        assert frozen.frozen is not None and len(plain_calls) == CHECKED_REPLAYS
+
+
 def test_a_recording_that_fails_runs_unfrozen():
     """A thin-lens scene loaded outside any renderer and still alive is traced into a batch's
     recording unrebuilt, and the recording fails: the renderer then runs that pass unfrozen,
