@@ -247,14 +247,20 @@ def check_obj_has_uvs(path: str | Path) -> None:
                             f"{path}: line {number}: face corner {corner!r} is not made of "
                             "integer indices; fix the file (export it again)"
                         ) from None
-                    # 1-based; negative counts back from the last one read so far
-                    if i == 0 or i > counts[kind] or -i > counts[kind]:
+                    if i < 0:  # relative indices: valid OBJ, but Mitsuba's loader reads them
+                        # as huge unsigned ones ("reference to invalid vertex 4294967254")
+                        raise CaptureError(
+                            f"{path}: line {number}: face index {i} ({kind}) is relative "
+                            "(negative), which the renderer cannot load; export with absolute "
+                            "indices (or renumber them)"
+                        )
+                    if i == 0 or i > counts[kind]:
                         raise CaptureError(
                             f"{path}: line {number}: face index {i} ({kind}) is out of range "
                             f"(1 to {counts[kind]} at that line); fix the file (export it again)"
                         )
             first = [int(c.split("/")[0]) for c in corners[:3]]
-            triangles.append([i - 1 if i > 0 else counts["v"] + i for i in first])
+            triangles.append([i - 1 for i in first])
             if all(len(c.split("/")) > 1 and c.split("/")[1] != "" for c in corners):
                 faces_with_vt += 1
     if faces == 0:

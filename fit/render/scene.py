@@ -30,6 +30,10 @@ def sensor_dict(camera: Camera, spp: int) -> dict:
         },
         "sampler": {"type": "independent", "sample_count": spp},
     }
+    # clip planes on the scene's scale (Mitsuba's defaults, 0.01 and 1e4, are metres: an object
+    # 5 mm from the camera, a scene in millimetres, rendered empty)
+    distance = float(np.linalg.norm(np.subtract(camera.target, camera.origin)))
+    out.update({"near_clip": 1e-3 * distance, "far_clip": max(1e4, 1e3 * distance)})
     if camera.kind == "orthographic":
         half = camera.ortho_width / 2  # Mitsuba's view spans [-1, 1] horizontally
         return {

@@ -303,6 +303,14 @@ CASES: list[Case] = [
         ("m.obj", "line 2", "not finite"),
     ),
     (
+        "obj-relative-indices",
+        lambda d: (
+            (d / "m.obj").write_text(OBJ.replace("f 1/1 2/2 3/3", "f -3/-3 -2/-2 -1/-1"))
+            and render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
+        ),
+        ("m.obj", "line 7", "relative"),
+    ),
+    (
         "obj-zero-area",
         lambda d: (
             (d / "m.obj").write_text(OBJ.replace("v 0 1 0", "v 2 0 0"))
@@ -775,7 +783,7 @@ CASES: list[Case] = [
         manifest(
             SPHERE,
             '[scene.geometry]\ntype = "obj"\nfile = "m.obj"',
-            setup=write("cap/m.obj", OBJ.replace("2/2", "-7/2")),
+            setup=write("cap/m.obj", OBJ.replace("2/2", "7/2")),
         ),
         ("m.obj", "out of range"),
     ),

@@ -195,3 +195,31 @@ def test_point_light_power_is_radiometric(tmp_path):
     )
     expected = rho / math.pi * power / (4 * math.pi * d**2)
     assert image.mean() == pytest.approx(expected, rel=0.02)
+
+
+@pytest.mark.parametrize("kind", ["perspective", "orthographic"])
+@pytest.mark.parametrize("scale", [1e-3, 1e3])
+def test_a_scene_of_any_scale_renders_its_object(kind, scale):
+    """The glazed sphere and its cameras scaled down (the camera 4 mm from a 1 mm sphere) or up
+    (kilometres): Mitsuba's default clip planes (0.01 and 1e4 m) rendered only the background."""
+    import dataclasses
+
+    from captures.scene import Sphere
+
+    cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
+    camera = dataclasses.replace(
+        cfg.scene.cameras[0],
+        width=16,
+        height=12,
+        origin=tuple(scale * c for c in cfg.scene.cameras[0].origin),
+        target=tuple(scale * c for c in cfg.scene.cameras[0].target),
+        kind=kind,
+        ortho_width=3.0 * scale,
+    )
+    scene = dataclasses.replace(
+        cfg.scene, cameras=(camera,), geometry=Sphere(radius=scale), lights=()
+    )
+    image = render(mi.load_dict(scene_dict(scene, cfg.material, 0, 4)), 4, 0)
+    background = np.asarray(cfg.scene.environment, np.float32)
+    # the sphere (a dimmer glaze over the grey environment) covers the centre
+    assert not np.allclose(image[6, 8], background, rtol=0.02)
