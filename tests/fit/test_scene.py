@@ -200,8 +200,9 @@ def test_point_light_power_is_radiometric(tmp_path):
 @pytest.mark.parametrize("kind", ["perspective", "orthographic"])
 @pytest.mark.parametrize("scale", [1e-3, 1e3])
 def test_a_scene_of_any_scale_renders_its_object(kind, scale):
-    """The glazed sphere and its cameras scaled down (the camera 4 mm from a 1 mm sphere) or up
-    (kilometres): Mitsuba's default clip planes (0.01 and 1e4 m) rendered only the background."""
+    """The glazed sphere and its cameras scaled down (the camera 4 mm from a 1 mm sphere: the
+    default near clip, 0.01 m, rendered only the background) or up (kilometres, within the
+    far clip)."""
     import dataclasses
 
     from captures.scene import Sphere
