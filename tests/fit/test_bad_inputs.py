@@ -199,6 +199,16 @@ def view_image(value: float):
     return setup
 
 
+def obj_case(text: str) -> Callable[[Path], list]:
+    """A render of the config with its geometry the OBJ `text` (written as m.obj)."""
+
+    def make(d: Path) -> list:
+        (d / "m.obj").write_text(text)
+        return render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
+
+    return make
+
+
 def truncated_png(d: Path, shape=(4, 8)) -> bytes:
     """The first half of a valid noisy PNG's bytes (its header reads, its pixels do not)."""
     rng = np.random.default_rng(0)
@@ -280,50 +290,32 @@ CASES: list[Case] = [
     ),
     (
         "obj-out-of-range",
-        lambda d: (
-            (d / "m.obj").write_text(OBJ.replace("3/3", "9/3"))
-            and render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
-        ),
+        obj_case(OBJ.replace("3/3", "9/3")),
         ("m.obj", "line 7", "range"),
     ),
     (
         "obj-vertex-two-numbers",
-        lambda d: (
-            (d / "m.obj").write_text(OBJ.replace("v 0 0 0", "v 0 0"))
-            and render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
-        ),
+        obj_case(OBJ.replace("v 0 0 0", "v 0 0")),
         ("m.obj", "line 1", "2 numbers"),
     ),
     (
         "obj-vertex-nan",
-        lambda d: (
-            (d / "m.obj").write_text(OBJ.replace("v 1 0 0", "v 1 0 nan"))
-            and render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
-        ),
+        obj_case(OBJ.replace("v 1 0 0", "v 1 0 nan")),
         ("m.obj", "line 2", "not finite"),
     ),
     (
         "obj-relative-indices",
-        lambda d: (
-            (d / "m.obj").write_text(OBJ.replace("f 1/1 2/2 3/3", "f -3/-3 -2/-2 -1/-1"))
-            and render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
-        ),
+        obj_case(OBJ.replace("f 1/1 2/2 3/3", "f -3/-3 -2/-2 -1/-1")),
         ("m.obj", "line 7", "relative"),
     ),
     (
         "obj-zero-area",
-        lambda d: (
-            (d / "m.obj").write_text(OBJ.replace("v 0 1 0", "v 2 0 0"))
-            and render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
-        ),
+        obj_case(OBJ.replace("v 0 1 0", "v 2 0 0")),
         ("m.obj", "zero area"),
     ),
     (
         "obj-no-uvs",
-        lambda d: (
-            (d / "m.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
-            and render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
-        ),
+        obj_case("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"),
         ("m.obj", "UVs"),
     ),
     (
@@ -343,10 +335,7 @@ CASES: list[Case] = [
     ),
     (
         "obj-bad-index",
-        lambda d: (
-            (d / "m.obj").write_text(OBJ.replace("3/3", "x/3"))
-            and render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
-        ),
+        obj_case(OBJ.replace("3/3", "x/3")),
         ("m.obj", "integer"),
     ),
     (
