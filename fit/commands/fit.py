@@ -38,6 +38,7 @@ from ..material import Free, provenance, resolve, save_preset, start_values, to_
 from ..material.preset import software_versions
 from ..output import ViewPanel, write_report, write_text
 from ..solvers import Checkpoint, Problem, Result, run_schedule
+from ..solvers.gn import AUTO_SPLIT
 
 #: Samples per pixel of the renders in the report (and the per-view residuals).
 REPORT_SPP = 64
@@ -132,6 +133,12 @@ MIN_PIXELS = 4
 SPP_OPTIONS = ("primal_spp", "jacobian_spp")
 
 
+def _samples(phase, option: str) -> int:
+    """The most samples per pixel a phase's option can render (`"auto"`: `gn`'s larger split)."""
+    value = getattr(phase.options, option, None) or 0
+    return AUTO_SPLIT * phase.spp if value == "auto" else value
+
+
 def prepare(cfg: FitConfig, holdout: int | None = None) -> Prepared:
     """Open the capture and check everything the fit needs against it (holdout, free keys,
     `[truth]` sizes, each phase's downscale): any problem is a one-line `InputError` before
@@ -165,7 +172,7 @@ def prepare(cfg: FitConfig, holdout: int | None = None) -> Prepared:
                 "give a smaller factor"
             )
         pixels = sum(v.image.shape[0] * v.image.shape[1] for v in views)
-        spp = max(phase.spp, *(getattr(phase.options, name, None) or 0 for name in SPP_OPTIONS))
+        spp = max(phase.spp, *(_samples(phase, name) for name in SPP_OPTIONS))
         if pixels * spp >= 2**32:
             raise InputError(
                 f"{cfg.path}: fit.phases[{k}]: {spp} spp over {pixels} pixels is more than "

@@ -3,6 +3,8 @@ iterates of the phase's tail averaged."""
 
 from __future__ import annotations
 
+from typing import Literal
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -12,7 +14,7 @@ from captures.errors import InputError
 
 from .adam import averaged_result
 from .base import AbstractSolver, Options, Result
-from .problem import residuals
+from .problem import noise_ratio, residuals
 from .uncertainty import MAX_UNCERTAINTY_PARAMS, linearised
 
 
@@ -21,14 +23,18 @@ class GNOptions(Options):
     """Fraction of the Gauss-Newton step taken (1: the full step to the linearised optimum)."""
     jacobian_spp: PositiveInt = 16
     """Samples per pixel of the curvature's Jacobian render (a decorrelated seed)."""
-    primal_spp: PositiveInt | None = None
+    primal_spp: PositiveInt | Literal["auto"] | None = None
     """Samples per pixel of each step's image (the residual), its reverse pass staying at the
-    phase's `spp` (absent: `spp`). Against a clean target (a render) a gradient's noise is
-    mostly the image's noise carried through the derivative, and an image sample costs less
-    than a reverse-pass one: on the grid's sphere (128x96, three views) 128 image and 16
-    reverse samples gave 3x less variance per second than 64 and 64 (BENCHMARKS, "Where a
-    gradient's noise comes from"). Against noisy photographs the reverse pass's own noise
-    dominates (the cup: more image samples did not help)."""
+    phase's `spp` (absent: `spp`). `"auto"` decides at the phase's start from two renders of the
+    image (`noise_ratio`): where the render's own noise is at least `AUTO_RATIO` times the rest
+    of the residual (a clean target: a render, a good fit to tidy photographs) a gradient's
+    noise is mostly that image noise, carried through both the image and the reverse pass's
+    product with it, so the image gets `AUTO_SPLIT` times `spp` and the reverse pass `spp / AUTO_SPLIT`; elsewhere
+    (photographs' noise or an unmodelled difference dominate the residual: the reverse pass's
+    noise times it) both keep `spp`. Measured on the grid's sphere against a 2048-spp target
+    (128x96, three views, seeds 0-2): the default's averaged phase at 256 / 16 ended at a max
+    error of 0.13-0.53 % against 0.36-1.35 % at 64 / 64, in 1.1x the time (BENCHMARKS, "Where
+    a gradient's noise comes from")."""
     refresh: PositiveInt = 10
     """Steps between curvature updates (a Jacobian render each)."""
     damping: PositiveFloat = 1e-3
@@ -43,6 +49,23 @@ class GNOptions(Options):
     """The largest change of any solver coordinate in one step."""
     average: float = Field(0.5, ge=0.0, le=1.0)
     """Fraction of the last iterates averaged into the result (Polyak)."""
+
+
+#: With `primal_spp = "auto"` where the render's noise is at least `AUTO_RATIO` times the rest of
+#: the residual: the image's samples are `AUTO_SPLIT` times the phase's `spp`, the reverse pass's
+#: `spp` divided by it. With noise N and the rest R the reverse pass's part of a gradient's
+#: variance scales as (R + N / 4) / (R + N) x 4, 2.5x at a ratio of 1, 1.6x at 4, while the
+#: image's part falls 4x or more; at a ratio of 3.4 (the grid's sphere against its 256-spp target)
+#: the split measured a third of the variance per second.
+AUTO_SPLIT, AUTO_RATIO = 4, 2.0
+
+
+def sample_split(problem, u, spp: int, seed: int, downscale: int) -> tuple[int, int, float]:
+    """`primal_spp = "auto"`'s choice at `u`: (image spp, reverse spp, the noise ratio)."""
+    ratio = noise_ratio(problem, u, spp, seed, downscale)
+    if ratio >= AUTO_RATIO:
+        return AUTO_SPLIT * spp, max(1, spp // AUTO_SPLIT), ratio
+    return spp, spp, ratio
 
 
 class GaussNewton(AbstractSolver):
@@ -89,8 +112,19 @@ class GaussNewton(AbstractSolver):
                 f"solver gn: {problem.n_material} free components (a texture?); its curvature "
                 "renders one forward pass per component: use adam for textures"
             )
-        primal_spp = options.primal_spp or spp
-        render = problem.render_fn("reverse", primal_spp, downscale, grad_spp=spp)
+        u = np.asarray(u0 if resume is None else resume["u"], np.float32)
+        note = ""
+        if resume is not None and "samples" in resume:
+            primal_spp, grad_spp = (int(n) for n in resume["samples"])
+        elif options.primal_spp == "auto":
+            primal_spp, grad_spp, ratio = sample_split(problem, u, spp, seed, downscale)
+            note = (
+                f"samples: image {primal_spp}, reverse pass {grad_spp} (the render's noise "
+                f"{ratio:.3g}x the rest of the residual)"
+            )
+        else:
+            primal_spp, grad_spp = options.primal_spp or spp, spp
+        render = problem.render_fn("reverse", primal_spp, downscale, grad_spp=grad_spp)
         residual = residuals(problem, render, downscale, independent_gains=True)
 
         def loss(u, seed):
@@ -98,7 +132,6 @@ class GaussNewton(AbstractSolver):
             return 0.5 * jnp.dot(r, r)
 
         value_and_grad = jax.jit(jax.value_and_grad(loss))
-        u = np.asarray(u0, np.float32)
         history, tail, gradients, rejected, first = [], [], [], 0, 0
         mean_jac = inverse = None
         if resume is not None:
@@ -149,9 +182,13 @@ class GaussNewton(AbstractSolver):
                         "tail_gradients": gradients,
                         "n_tail_gradients": len(gradients),
                         "rejected": rejected,
+                        "samples": [primal_spp, grad_spp],
                     }
                 )
         out = averaged_result(self.name, problem, u, tail, None, history, steps, rejected)
+        if note:
+            report = out.reports[-1]
+            report.message = f"{report.message}; {note}" if report.message else note
         if gradients:
             pairs = np.asarray(gradients, np.float64)
             out.tail_gradients = (pairs[:, : len(u)], pairs[:, len(u) :])

@@ -197,6 +197,8 @@ def shape_loss(d, loss: str, scale: float):
 #: With `independent_gains`, the gains' derivatives use a second render with the seed plus this
 #: offset (far from `GRAD_SEED_OFFSET` and from a schedule's consecutive seeds).
 GAIN_SEED_OFFSET = 0xB10C5
+#: `noise_ratio`'s two renders use the seed plus this and one more.
+NOISE_SEED_OFFSET = 0x0A7105
 
 
 def residuals(
@@ -268,3 +270,24 @@ def _gain_segments(problem: Problem, downscale: int) -> tuple[jnp.ndarray, int]:
         for i, view in enumerate(problem.gain_views)
     ]
     return jnp.asarray(np.concatenate(parts)), c * len(problem.gain_views)
+
+
+def noise_ratio(problem: Problem, u, spp: int, seed: int, downscale: int = 1) -> float:
+    """How much of the residual at `u` is the render's own Monte Carlo noise at `spp`: from two
+    renders with independent seeds, the weighted squared difference's half (that noise) over
+    the rest of the mean residual's square (the photos' noise, unmodelled differences, the
+    parameters' error); infinite where the rest is not positive."""
+    renderer = problem.renderer(downscale)
+
+    def render(x, s):
+        return jnp.asarray(renderer.render(np.asarray(x, np.float32), int(s), spp))
+
+    residual = residuals(problem, render, downscale)
+    u = jnp.asarray(u, jnp.float32)
+    r1, r2 = (
+        np.asarray(residual(u, seed + k), np.float64)
+        for k in (NOISE_SEED_OFFSET, NOISE_SEED_OFFSET + 1)
+    )
+    noise = 0.5 * float(np.sum((r1 - r2) ** 2))
+    rest = float(np.sum((0.5 * (r1 + r2)) ** 2)) - 0.5 * noise
+    return noise / rest if rest > 0 else float("inf")

@@ -682,3 +682,54 @@ def test_meat_discounts_the_renders_own_noise():
     np.testing.assert_allclose(np.diag(np.mean(meats, axis=0)), np.diag(truth), rtol=0.1)
     assert np.all(np.diag(np.mean(squares, axis=0)) > 4 * np.diag(truth))
     assert np.all(np.linalg.eigvalsh(meats[0]) >= -1e-9)
+
+
+def _against(problem: Problem, image: np.ndarray) -> Problem:
+    """`problem` with its one view's photo replaced by `image`."""
+    view = dataclasses.replace(problem.capture.views[0], image=image.astype(np.float32))
+    capture = dataclasses.replace(problem.capture, views=[view])
+    return Problem(capture, problem.material, problem.free)
+
+
+def test_noise_ratio_is_the_renders_share_of_the_residual(problem):
+    """Against a target that is itself a render at the same spp, the rest of the residual is one
+    render's noise: a ratio about 1; at 16x the samples at least 16 (more: the scene's sampler
+    is stratified, its variance falls faster than 1 / spp; measured 127); against a target
+    three times brighter, the difference dominates (30 % brighter is still 7x less than 4-spp
+    noise on this small sphere's highlights)."""
+    from fit.solvers.problem import noise_ratio
+
+    u = problem.unconstrained(TRUTH)
+    x = to_physical(problem.free, u)
+    shape = problem.capture.views[0].image.shape
+
+    def target(spp, seed=4242):
+        return problem.renderer(1).render(x, seed, spp).reshape(shape)
+
+    same = [noise_ratio(_against(problem, target(4, 4242 + k)), u, 4, k) for k in range(4)]
+    assert 0.6 < np.median(same) < 1.6, same
+    assert noise_ratio(_against(problem, target(64)), u, 4, 0) > 10
+    assert noise_ratio(_against(problem, 3.0 * target(64)), u, 4, 0) < 0.5
+
+
+def test_gauss_newton_auto_split_follows_the_residual(problem, monkeypatch):
+    """`primal_spp = "auto"`: against a clean target the image renders at 4x the phase's spp and
+    the reverse pass at a quarter, said in the phase's report; against a target three times
+    brighter both keep the phase's spp."""
+    clean = problem.unconstrained(TRUTH)
+    for factor, image_spp, reverse_spp in ((1.0, 16, 1), (3.0, 4, 4)):
+        p = _against(problem, factor * problem.capture.views[0].image)
+        renderer = p.renderer(1)
+        calls = {"render": [], "vjp": []}
+        for name in calls:
+            method = getattr(renderer, name)
+
+            def spy(values, seed, spp, *rest, method=method, seen=calls[name]):
+                seen.append(spp)
+                return method(values, seed, spp, *rest)
+
+            monkeypatch.setattr(renderer, name, spy)
+        result = _gn(p, clean, 2, spp=4, primal_spp="auto")
+        assert calls["vjp"] == [reverse_spp] * 2
+        assert calls["render"].count(image_spp) >= 2
+        assert f"image {image_spp}, reverse pass {reverse_spp}" in result.reports[0].message
