@@ -201,8 +201,8 @@ def bench(
     only: Annotated[
         str | None,
         typer.Option(
-            help="Run one table: bsdf, cup, fit, long, recovery, grid or profile (the last five "
-            "take minutes to hours: not run by default)."
+            help="Run one table: bsdf, cup, fit, long, recovery, grid, profile or versus (the "
+            "last six take minutes to hours: not run by default)."
         ),
     ] = None,
     fit_config: Annotated[
@@ -219,11 +219,14 @@ def bench(
     widths: Annotated[
         str, typer.Option(help="--only grid: comma-separated image widths (height: 3/4 of it).")
     ] = "64,128,256",
+    seeds: Annotated[
+        int, typer.Option(min=1, help="--only versus: runs of each method (seeds 0, 1, ...).")
+    ] = 3,
     results: Annotated[
         Path | None,
         typer.Option(
-            help="--only recovery, grid: JSON of finished cases (kept: a rerun resumes; default "
-            "bench-recovery.json, bench-grid.json)."
+            help="--only recovery, grid, versus: JSON of finished cases (kept: a rerun resumes; "
+            "default bench-<table>.json)."
         ),
     ] = None,
     out: Annotated[Path | None, typer.Option(help="Also write the tables (Markdown) here.")] = None,
@@ -241,10 +244,10 @@ def bench(
     memory per step over a long Adam run, plotted to a PNG beside --out (or bench-long.png)."""
     from captures.files import check_output, write_text
 
-    if only not in (None, "bsdf", "cup", "fit", "long", "recovery", "grid", "profile"):
+    if only not in (None, "bsdf", "cup", "fit", "long", "recovery", "grid", "profile", "versus"):
         raise _fail(
-            f"--only {only!r}: unknown table; choose bsdf, cup, fit, long, recovery, grid or "
-            "profile",
+            f"--only {only!r}: unknown table; choose bsdf, cup, fit, long, recovery, grid, "
+            "profile or versus",
             2,
         )
     if steps < 2:
@@ -256,7 +259,7 @@ def bench(
         _widths(widths)
     plot = (
         (out.with_suffix(".png") if out else Path(f"bench-{only}.png"))
-        if only in ("long", "grid")
+        if only in ("long", "grid", "versus")
         else None
     )
     results = results or Path(f"bench-{only}.json")
@@ -265,7 +268,9 @@ def bench(
     try:
         if out is not None:
             check_output(out, "--out", force=force, inputs=[fit_config])
-        resuming = only == "grid" and results.exists()  # its plot is redrawn from the results
+        resuming = (
+            only in ("grid", "versus") and results.exists()
+        )  # its plot is redrawn from the results
         if plot is not None and not resuming:
             check_output(plot, "--out (its plot)", force=force, inputs=[fit_config])
     except InputError as err:
@@ -282,6 +287,7 @@ def bench(
         plot_long_run,
         profile_table,
         recovery_table,
+        versus_table,
     )
 
     tables = []
@@ -307,6 +313,9 @@ def bench(
             if only == "grid":
                 cells = grid_cells(tuple(shape_list), _widths(widths))
                 tables.append(grid_table(cells, results, bar, plot=plot))
+                console.print(f"wrote {plot}", markup=False)
+            if only == "versus":
+                tables.append(versus_table(seeds, results, bar, plot=plot))
                 console.print(f"wrote {plot}", markup=False)
         except (InputError, ValueError) as err:
             raise _fail(err, 2) from None

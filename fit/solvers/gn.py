@@ -26,15 +26,15 @@ class GNOptions(Options):
     primal_spp: PositiveInt | Literal["auto"] | None = None
     """Samples per pixel of each step's image (the residual), its reverse pass staying at the
     phase's `spp` (absent: `spp`). `"auto"` decides at the phase's start from two renders of the
-    image (`noise_ratio`): where the render's own noise is at least `AUTO_RATIO` times the rest
-    of the residual (a clean target: a render, a good fit to tidy photographs) a gradient's
+    image (`noise_ratio`). Where the render's own noise is at least `AUTO_RATIO` times the rest
+    of the residual (a clean target: a render, a good fit to tidy photographs), a gradient's
     noise is mostly that image noise, carried through both the image and the reverse pass's
-    product with it, so the image gets `AUTO_SPLIT` times `spp` and the reverse pass `spp / AUTO_SPLIT`; elsewhere
-    (photographs' noise or an unmodelled difference dominate the residual: the reverse pass's
-    noise times it) both keep `spp`. Measured on the grid's sphere against a 2048-spp target
-    (128x96, three views, seeds 0-2): the default's averaged phase at 256 / 16 ended at a max
-    error of 0.13-0.53 % against 0.36-1.35 % at 64 / 64, in 1.1x the time (BENCHMARKS, "Where
-    a gradient's noise comes from")."""
+    product with it: the image gets `AUTO_SPLIT` times `spp`, the reverse pass `spp /
+    AUTO_SPLIT`. Elsewhere (the photographs' noise or an unmodelled difference dominate the
+    residual, and the reverse pass's noise times it) both keep `spp`. Measured on the grid's
+    sphere against a 2048-spp target (128x96, three views, seeds 0-2): the default's averaged
+    phase at 256 / 16 ended at a max error of 0.13-0.53 % against 0.36-1.35 % at 64 / 64, in
+    1.1x the time (BENCHMARKS, "Where a gradient's noise comes from")."""
     refresh: PositiveInt = 10
     """Steps between curvature updates (a Jacobian render each)."""
     damping: PositiveFloat = 1e-3

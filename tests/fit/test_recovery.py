@@ -108,8 +108,11 @@ def test_tutorial_loop_moves_toward_the_truth():
     material = recovery.glaze(recovery.START)
     problem = Problem(capture, material, resolve(material, list(recovery.KEYS)))
     stages = ((20, 4, 0.05), (5, 8, 0.01))
-    seconds, values, renders = bench.tutorial_loop(problem, recovery.START, stages)
+    seen = []
+    record = lambda it, t, v: seen.append((it, t, v))  # noqa: E731
+    seconds, values, renders = bench.tutorial_loop(problem, recovery.START, stages, 0, record, 5)
     assert seconds > 0 and renders == 25 * 2 * 3
+    assert [s[0] for s in seen] == [5, 10, 15, 20, 25] and seen[-1][2] == values
     for key in ("glaze.roughness", "glaze.ior"):
         start_error = abs(recovery.START[key] - case.truth()[key])
         assert abs(values[key] - case.truth()[key]) < 0.7 * start_error, (key, values[key])
@@ -154,3 +157,30 @@ def test_grid_table_resumes_marks_the_front_and_plots(tmp_path, monkeypatch):
     bench.grid_table(cells, tmp_path / "g.json")
     assert len(ran) == len(cells)
     assert bench.pareto_front([(1, 2), (2, 1), (2, 2), (1, 2)]) == [True, True, False, True]
+
+
+def test_versus_table_resumes_and_compares_medians(tmp_path, monkeypatch):
+    """Each (method, seed) runs once (a rerun reads it back), the note gives the ratio of the
+    median wall times and the median errors, and the plot holds the loop's running error."""
+    ran = []
+
+    def fake(method, seed):
+        ran.append((method, seed))
+        tutorial = method == "tutorial"
+        return {
+            "seconds": (160.0 if tutorial else 40.0) + seed,
+            "max_relative_error": (0.008 if tutorial else 0.004) * (1 + seed),
+            "values": {},
+            "trajectory": [[10 * i, 0.5 * i, 0.5 / i] for i in range(1, 31)] if tutorial else [],
+        }
+
+    monkeypatch.setattr(bench, "versus_run", fake)
+    table = bench.versus_table(3, tmp_path / "v.json", plot=tmp_path / "v.png")
+    assert sorted(ran) == [(m, k) for m in ("default", "tutorial") for k in range(3)]
+    assert (tmp_path / "v.png").stat().st_size > 10_000
+    # medians: default 41 s and 0.8 %, tutorial 161 s and 1.6 %
+    assert "3.9x the default's" in table.notes[0] and "default 0.80 %" in table.notes[0]
+    assert "tutorial 1.60 %" in table.notes[0]
+    assert len(table.rows) == 2 * (3 + 1)
+    bench.versus_table(3, tmp_path / "v.json")
+    assert len(ran) == 6
