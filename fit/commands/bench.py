@@ -565,6 +565,12 @@ def plot_long_run(run: LongRun, out: Path) -> Path:
 # Recovery over the parameter range (issue 14) -----------------------------------------------------
 
 
+def schedule_key(schedule) -> list[str]:
+    """A schedule as a resumable results file's setting records it: each phase's solver, spp,
+    resolution, steps and options (a changed option makes earlier results another setting)."""
+    return [f"{p.describe()} x {p.steps} {p.options!r}" for p in schedule]
+
+
 def _resumed(results: Path, setting: dict, entries: str, other: str, replace: bool) -> dict:
     """The finished entries of a resumable results file (JSON: its `setting` and `entries`);
     none when it does not exist or with `replace`. A file that is not such JSON, or holds
@@ -608,7 +614,12 @@ def recovery_table(
     schedule = " + ".join(
         f"{p.solver} {p.steps} x {p.spp} spp 1/{p.downscale}" for p in DEFAULT_SCHEDULE
     )
-    setting = {"size": [width, height], "schedule": schedule, "start": recovery.START}
+    setting = {
+        "size": [width, height],
+        "schedule": schedule,
+        "phases": schedule_key(DEFAULT_SCHEDULE),
+        "start": recovery.START,
+    }
     done = _resumed(
         results, setting, "cases", "a sweep of another size, schedule or start", replace
     )
@@ -802,7 +813,7 @@ def versus_table(
     from ..solvers import DEFAULT_SCHEDULE
 
     setting = {
-        "default": [p.describe() + f" x {p.steps} {p.options!r}" for p in DEFAULT_SCHEDULE],
+        "default": schedule_key(DEFAULT_SCHEDULE),
         "target_spp": VERSUS_TARGET_SPP,
         "width": VERSUS_WIDTH,
     }
@@ -1073,7 +1084,7 @@ def grid_table(
 
     from ..solvers import DEFAULT_SCHEDULE
 
-    setting = {"default": [p.describe() + f" x {p.steps}" for p in DEFAULT_SCHEDULE]}
+    setting = {"default": schedule_key(DEFAULT_SCHEDULE)}
     done = _resumed(results, setting, "cells", "a grid of another default schedule", replace)
     task = progress.add_task("bench: grid", total=len(cells)) if progress else None
     for cell in cells:
