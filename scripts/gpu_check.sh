@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The GPU check of BENCHMARKS.md (issue 14): on a machine with an NVIDIA GPU and layerfit's
 # dependencies importable by `python3` (a venv, or PYTHONPATH), run with `cuda_ad_rgb`:
-#   1. a smoke render, 2. the profile table, 3. the bench grid at 128 wide (with the tutorial loop),
-#   4. the default test suite, 5. the rest of the grid (64 and 256 wide) while time is left.
+#   1. a smoke render, 2. the profile table, 3. the default against the tutorial loop (2 seeds),
+#   4. the bench grid at 128 wide, 5. the default test suite, 6. the rest of the grid (64 and
+#   256 wide) while time is left.
 # Each part has its own time limit and a failure does not stop the next; everything goes to $1.
 # Usage: bash scripts/gpu_check.sh OUTDIR [SECONDS_FOR_THE_WHOLE]   (default 540)
 # Run 2026-11-30 on an H200 (results in BENCHMARKS.md, "On a GPU"). There the image's own Python
@@ -42,6 +43,10 @@ EOF
 echo "== profile ($(left) s left)"
 timeout 90 $py -m fit bench --only profile --size 160x120 --out "$out/profile.md" --force \
     2>&1 | tail -30
+
+echo "== default vs tutorial loop, 2 seeds ($(left) s left)"
+timeout 150 $py -m fit bench --only versus --seeds 2 --results "$out/versus.json" \
+    --out "$out/versus.md" --force 2>&1 | tail -20
 
 echo "== grid at 128 wide ($(left) s left)"
 timeout 170 $py -m fit bench --only grid --shapes sphere --widths 128 \
