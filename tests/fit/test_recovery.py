@@ -160,9 +160,11 @@ def test_grid_table_resumes_marks_the_front_and_plots(tmp_path, monkeypatch):
 
 
 def test_versus_table_resumes_and_compares_medians(tmp_path, monkeypatch):
-    """Each (method, seed) runs once (a rerun reads it back), the note gives the ratio of the
-    median wall times and the median errors, and the plot holds the loop's running error."""
+    """Each (method, seed) runs once (a rerun reads it back); the note gives the ratio of the
+    median wall times and errors, and when each run's running answer reached the other method's
+    median error to stay; the plot holds both running errors."""
     ran = []
+    default_path = [[4, 5.0, 0.05], [8, 10.0, 0.01], [12, 20.0, 0.02], [16, 30.0, 0.005]]
 
     def fake(method, seed):
         ran.append((method, seed))
@@ -171,7 +173,9 @@ def test_versus_table_resumes_and_compares_medians(tmp_path, monkeypatch):
             "seconds": (160.0 if tutorial else 40.0) + seed,
             "max_relative_error": (0.008 if tutorial else 0.004) * (1 + seed),
             "values": {},
-            "trajectory": [[10 * i, 0.5 * i, 0.5 / i] for i in range(1, 31)] if tutorial else [],
+            "trajectory": [[10 * i, 0.5 * i, 0.5 / i] for i in range(1, 31)]
+            if tutorial
+            else default_path,
         }
 
     monkeypatch.setattr(bench, "versus_run", fake)
@@ -181,6 +185,12 @@ def test_versus_table_resumes_and_compares_medians(tmp_path, monkeypatch):
     # medians: default 41 s and 0.8 %, tutorial 161 s and 1.6 %
     assert "3.9x the default's" in table.notes[0] and "default 0.80 %" in table.notes[0]
     assert "tutorial 1.60 %" in table.notes[0]
+    # the default's path is within 1.6 % at 10 s, out again at 20 s, in to stay from 30 s
+    rows = {(r[0], r[1]): r[-1] for r in table.rows}
+    assert rows[("default", "0")] == "30.0" and "5.4x sooner" in table.notes[0]
+    # the loop's path never reaches 0.8 %; seed 0's final values do (at 160 s), the others not
+    assert rows[("tutorial", "0")] == "160.0" and rows[("tutorial", "1")] == "not reached"
+    assert rows[("**tutorial, median**", "")] == "not reached"
     assert len(table.rows) == 2 * (3 + 1)
     bench.versus_table(3, tmp_path / "v.json")
     assert len(ran) == 6
