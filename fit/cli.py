@@ -59,11 +59,20 @@ def _fail(err: Exception | str, code: int) -> typer.Exit:
     return typer.Exit(code)
 
 
-def _finite(value: float) -> float:
-    """A float option's check: NaN and infinity are refused (click's ranges let NaN through)."""
-    if value is not None and not math.isfinite(value):
-        raise typer.BadParameter(f"{value} is not a finite number")
-    return value
+def _finite(low: float, high: float) -> Callable[[float], float]:
+    """A float option's check: a finite number within [low, high] (click's own range check
+    answered NaN with 'should be <= high')."""
+
+    def check(value: float) -> float:
+        if value is not None and not math.isfinite(value):
+            raise typer.BadParameter(
+                f"{value} is not a finite number; give one in [{low:g}, {high:g}]"
+            )
+        if value is not None and not low <= value <= high:
+            raise typer.BadParameter(f"{value:g} is not in [{low:g}, {high:g}]")
+        return value
+
+    return check
 
 
 @contextlib.contextmanager
@@ -369,25 +378,24 @@ def synth(
     shot: Annotated[
         float,
         typer.Option(
-            min=0, max=1e6, callback=_finite, help="Shot noise: variance = shot x signal."
+            callback=_finite(0, 1e6), help="Shot noise: variance = shot x signal (0 to 1e6)."
         ),
     ] = 0.0,
     read: Annotated[
-        float, typer.Option(min=0, max=1e6, callback=_finite, help="Read noise standard deviation.")
+        float,
+        typer.Option(callback=_finite(0, 1e6), help="Read noise standard deviation (0 to 1e6)."),
     ] = 0.0,
     exposure_ev: Annotated[
         float,
         typer.Option(
-            min=0, max=10, callback=_finite, help="Random exposure offset per view, +- EV (0-10)."
+            callback=_finite(0, 10), help="Random exposure offset per view, +- EV (0 to 10)."
         ),
     ] = 0.0,
     exposure_base: Annotated[
         float,
         typer.Option(
-            min=-20,
-            max=20,
-            callback=_finite,
-            help="Exposure of every view, EV (negative: darker, fewer clipped).",
+            callback=_finite(-20, 20),
+            help="Exposure of every view, EV, -20 to 20 (negative: darker, fewer clipped).",
         ),
     ] = 0.0,
     force: Annotated[

@@ -482,6 +482,11 @@ CASES: list[Case] = [
     ),
     ("synth-shot-neg", synth_args("--out", out("c"), "--shot", "-1"), ("--shot",)),
     ("synth-read-neg", synth_args("--out", out("c"), "--read", "-0.5"), ("--read",)),
+    (
+        "synth-shot-nan",  # click's range check said "should be <= 1e6"
+        synth_args("--out", out("c"), "--shot", "nan"),
+        ("--shot", "not a finite number"),
+    ),
     ("synth-ev-nan", synth_args("--out", out("c"), "--exposure-ev", "nan"), ("--exposure-ev",)),
     ("synth-ev-inf", synth_args("--out", out("c"), "--exposure-ev", "inf"), ("--exposure-ev",)),
     ("synth-ev-huge", synth_args("--out", out("c"), "--exposure-ev", "1e308"), ("--exposure-ev",)),
