@@ -102,3 +102,23 @@ def test_default_job_configs(tmp_path):
     fit = load_fit_config(tmp_path / "configs" / "fit.toml")
     assert fit.phases == list(DEFAULT_SCHEDULE)
     assert [f.key for f in resolve(fit.material, fit.free)] == fit.free
+
+
+def test_readme_shows_the_default_schedule_exactly():
+    """README's "Fitting" config example says its phases are exactly the default schedule."""
+    import tomllib
+
+    from fit.solvers import Phase
+
+    text = (ROOT / "README.md").read_text()
+    fitting = text[text.index("\n## Fitting\n") :]
+    block = fitting[
+        fitting.index("```toml\n") + 8 : fitting.index("```", fitting.index("```toml") + 7)
+    ]
+    assert "The default schedule is exactly this" in fitting
+
+    def key(p):  # options as the solver sees them (defaults filled in)
+        return (p.solver, p.steps, p.spp, p.downscale, p.options)
+
+    phases = [Phase(**p) for p in tomllib.loads(block)["fit"]["phases"]]
+    assert [key(p) for p in phases] == [key(p) for p in DEFAULT_SCHEDULE]
