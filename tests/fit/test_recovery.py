@@ -160,7 +160,8 @@ def test_grid_table_resumes_marks_the_front_and_plots(tmp_path, monkeypatch):
 
 
 def test_versus_table_resumes_and_compares_medians(tmp_path, monkeypatch):
-    """Each (method, seed) runs once (a rerun reads it back); the note gives the ratio of the
+    """Each (method, seed) runs once (a rerun reads it back, a default run of another default
+    schedule excepted); the note gives the ratio of the
     median wall times and errors, and when each run's running answer reached the other method's
     median error to stay; the plot holds both running errors."""
     ran = []
@@ -194,3 +195,9 @@ def test_versus_table_resumes_and_compares_medians(tmp_path, monkeypatch):
     assert len(table.rows) == 2 * (3 + 1)
     bench.versus_table(3, tmp_path / "v.json")
     assert len(ran) == 6
+    # a default run of another default schedule runs again; the loop's runs are kept
+    saved = json.loads((tmp_path / "v.json").read_text())
+    saved["runs"]["default 1"]["schedule"] = ["another schedule"]
+    (tmp_path / "v.json").write_text(json.dumps(saved))
+    bench.versus_table(3, tmp_path / "v.json")
+    assert ran[6:] == [("default", 1)]
