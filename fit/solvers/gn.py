@@ -34,10 +34,10 @@ class GNOptions(Options):
     residual, and the reverse pass's noise times it) both keep `spp`. Measured on the grid's
     sphere against a 2048-spp target (128x96, three views, seeds 0-2): the default's averaged
     phase at 256 / 16 ended at a max error of 0.13-0.53 % against 0.36-1.35 % at 64 / 64, in
-    1.1x the time (BENCHMARKS, "The default against the tutorial loop"). Not everywhere: on
-    the layered cup's photographs at its truth (ratio infinite) 256 / 16 gave 1.4x the
-    variance per second of 64 / 64 (its reverse pass's own noise is larger: one layer picked
-    per point), so its config keeps one count."""
+    1.1x the time; but over the recovery sweep the reported sd then missed 4 of 150 errors
+    (README, "Fitting"), so the default keeps one count. On the layered cup's photographs at
+    its truth (ratio infinite) 256 / 16 gave 1.4x the variance per second of 64 / 64 (its
+    reverse pass's own noise is larger: one layer picked per point)."""
     refresh: PositiveInt = 10
     """Steps between curvature updates (a Jacobian render each)."""
     damping: PositiveFloat = 1e-3
