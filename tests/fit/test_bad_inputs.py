@@ -506,7 +506,7 @@ CASES: list[Case] = [
         ("--downscale",),
     ),
     ("inspect-downscale-neg", inspect_args(out("cap"), "--downscale", "-2"), ("--downscale",)),
-    ("bench-only", lambda d: ["bench", "--only", "speed"], ("--only", "grid or profile")),
+    ("bench-only", lambda d: ["bench", "--only", "speed"], ("--only", "profile or versus")),
     ("bench-size", lambda d: ["bench", "--only", "recovery", "--size", "3x3"], ("--size",)),
     ("bench-size-text", lambda d: ["bench", "--only", "grid", "--size", "big"], ("--size",)),
     ("bench-shapes", lambda d: ["bench", "--only", "recovery", "--shapes", "cube"], ("--shapes",)),
