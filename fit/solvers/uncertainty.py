@@ -44,11 +44,24 @@ def _inverse_determined(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return inverse, undetermined
 
 
-def _meat(jac1, jac2, r1, r2) -> np.ndarray:
-    """`J^T diag(r1 r2) J` with J the two renders' mean Jacobian, its negative eigenvalues set to
-    zero: `r1 r2` is unbiased for the squared residual of a noise-free render."""
+def _meat(jac1, jac2, r1, r2, channels: int = 3) -> np.ndarray:
+    """`sum_p (J_p^T r1_p)(J_p^T r2_p)^T` over pixels p (each `channels` consecutive rows), J the
+    two renders' mean Jacobian, symmetrised, its negative eigenvalues set to zero: `r1 r2` is
+    unbiased for the squared residual of a noise-free render.
+
+    Summed within a pixel first because a pixel's channels share its light paths, so their
+    noise is correlated: per channel (`J^T diag(r1 r2) J`) the meat left out that covariance.
+    Measured on the recovery sweep's sphere at ior 2.8 (160x120, three views; eight independent
+    256-spp targets against a 4096-spp mean, the offset `H^-1 J^T t` exactly): alpha's offset
+    spread 0.98 % (ior 0.055), per channel the sandwich said 0.37 % (0.029), per pixel 0.63 %
+    (0.050); 2x2 or 4x4 pixel blocks added nothing (the box filter keeps pixels apart)."""
     mean = 0.5 * (jac1 + jac2)
-    meat = mean.T @ (mean * (np.asarray(r1) * np.asarray(r2))[:, None])
+    if len(r1) % channels:
+        channels = 1
+    p = mean.shape[1]
+    s1 = (mean * np.asarray(r1, np.float64)[:, None]).reshape(-1, channels, p).sum(axis=1)
+    s2 = (mean * np.asarray(r2, np.float64)[:, None]).reshape(-1, channels, p).sum(axis=1)
+    meat = s1.T @ s2
     values, vectors = np.linalg.eigh(0.5 * (meat + meat.T))
     return (vectors * np.clip(values, 0.0, None)) @ vectors.T
 

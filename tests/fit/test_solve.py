@@ -671,17 +671,36 @@ def test_meat_discounts_the_renders_own_noise():
     from fit.solvers.uncertainty import _meat
 
     rng = np.random.default_rng(2)
-    jac = rng.normal(size=(2000, 3))
-    target = 0.1 * rng.normal(size=2000)  # the residual of a noise-free render
-    truth = jac.T @ (jac * target[:, None] ** 2)
+    jac = rng.normal(size=(2001, 3))
+    target = 0.1 * rng.normal(size=2001)  # the residual of a noise-free render
+    per_pixel = (jac * target[:, None]).reshape(-1, 3, 3).sum(axis=1)
+    truth = per_pixel.T @ per_pixel
     meats, squares = [], []
     for _ in range(50):
-        r1, r2 = (target + 0.3 * rng.normal(size=2000) for _ in range(2))
+        r1, r2 = (target + 0.3 * rng.normal(size=2001) for _ in range(2))
         meats.append(_meat(jac, jac, r1, r2))
         squares.append(jac.T @ (jac * (0.5 * (r1 + r2))[:, None] ** 2))
     np.testing.assert_allclose(np.diag(np.mean(meats, axis=0)), np.diag(truth), rtol=0.1)
     assert np.all(np.diag(np.mean(squares, axis=0)) > 4 * np.diag(truth))
     assert np.all(np.linalg.eigvalsh(meats[0]) >= -1e-9)
+
+
+def test_meat_keeps_the_channels_shared_noise():
+    """A pixel's channels share its light paths: with noise common to a pixel's three channels
+    and derivatives alike in them (a white highlight's width), the spread of `J^T t` over
+    targets is what the per-pixel meat says, three times the per-channel one's."""
+    from fit.solvers.uncertainty import _meat
+
+    rng = np.random.default_rng(5)
+    pixels = 3000
+    jac = np.repeat(rng.normal(size=(pixels, 2)), 3, axis=0)
+    sigma = np.repeat(0.1 * rng.uniform(0.5, 2.0, size=pixels), 3)
+    draws = [sigma * np.repeat(rng.normal(size=pixels), 3) for _ in range(400)]
+    spread = np.var([jac.T @ t for t in draws], axis=0)
+    meat = np.mean([np.diag(_meat(jac, jac, t, t)) for t in draws[:50]], axis=0)
+    per_channel = np.mean([np.diag(_meat(jac, jac, t, t, channels=1)) for t in draws[:50]], axis=0)
+    np.testing.assert_allclose(meat, spread, rtol=0.2)
+    np.testing.assert_allclose(meat / per_channel, 3.0, rtol=0.05)
 
 
 def _against(problem: Problem, image: np.ndarray) -> Problem:
