@@ -102,8 +102,9 @@ def uncertainty(
     tail_gradients: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[dict, np.ndarray, list[str]]:
     """Gauss-Newton covariance at the solver's vector `u` in its sandwich form,
-    `H^-1 J^T diag(r^2) J H^-1 * N / (N - P)` with `H = J^T J` (J, r: the weighted Jacobian and
-    residuals), mapped to physical units through the transforms' derivatives.
+    `H^-1 (sum_p J_p^T r_p r_p^T J_p) H^-1 * N / (N - P)` (p: a pixel's channels; `_meat`) with
+    `H = J^T J` (J, r: the weighted Jacobian and residuals), mapped to physical units through
+    the transforms' derivatives.
 
     The plain form `s^2 (J^T J)^-1` assumes every pixel equally noisy; Monte Carlo noise gathers
     in highlights, where roughness and ior are decided (measured on the default job's sphere:
