@@ -277,9 +277,8 @@ def bench(
     try:
         if out is not None:
             check_output(out, "--out", force=force, inputs=[fit_config])
-        resuming = (
-            only in ("grid", "versus") and results.exists()
-        )  # its plot is redrawn from the results
+        # a resumed grid or versus run redraws its plot from the results
+        resuming = only in ("grid", "versus") and results.exists()
         if plot is not None and not resuming:
             check_output(plot, "--out (its plot)", force=force, inputs=[fit_config])
     except InputError as err:

@@ -138,7 +138,7 @@ class GaussNewton(AbstractSolver):
         history, tail, gradients, rejected, first = [], [], [], 0, 0
         mean_jac = inverse = None
         if resume is not None:
-            u, first = np.asarray(resume["u"], np.float32), int(resume["step"])
+            first = int(resume["step"])  # `u` is the saved one (above)
             history, rejected = list(resume["history"]), int(resume["rejected"])
             tail = list(np.asarray(resume["tail"]))
             gradients = list(np.asarray(resume.get("tail_gradients", [])))
