@@ -6,7 +6,6 @@ from __future__ import annotations
 import gc
 import logging
 import re
-import weakref
 from contextlib import contextmanager
 
 import drjit as dr
@@ -16,7 +15,7 @@ import numpy as np
 from captures.capture import Capture
 
 from ..material import Free, Material
-from .scene import MATERIAL_PREFIX, batch_sensor_dict, scene_dict
+from .scene import MATERIAL_PREFIX, batch_sensor_dict, scene_dict, sensor_dict
 
 log = logging.getLogger(__name__)
 
@@ -28,74 +27,65 @@ log = logging.getLogger(__name__)
 _UNTRAVERSED_SENSORS = ("OrthographicCamera", "ThinLensCamera")
 
 
-def _cameras(scene) -> list:
-    """The scene's camera sensors: its sensor, or a `batch` sensor's children in film order."""
-    sensor = scene.sensors()[0]
+def _cameras(scene, sensor: int) -> list:
+    """The scene's camera sensors at index `sensor`: it, or a `batch` sensor's children in film
+    order."""
+    sensor = scene.sensors()[sensor]
     if sensor.class_name() != "BatchSensor":
         return [sensor]
     props = mi.traverse(sensor).properties
     return [props[k][2] for k in props if k.startswith("view_") and k.endswith(".to_world")]
 
 
-#: Every live `_Group` with such sensors among its cameras. A `batch` sensor calls its
-#: children virtually, and a recorded virtual call traces every live camera of the process.
-#: Measured (Dr.Jit 1.5, Mitsuba 3.9.1): with another such group loaded before it (its sensors
-#: rebuilt inside the recording as well, or the recording fails), a batch's frozen reverse and
-#: forward passes replayed zero or wrong derivatives (primal passes right). So a batch of such
-#: cameras is frozen only until another such group is alive at one of its calls (`_Frozen`):
-#: a fit's renderer is frozen, a second resolution's phases (and the first's after) are not.
-_UNTRAVERSED: weakref.WeakSet = weakref.WeakSet()
-
-
-def _rebuild_sensor(scene, x_fov: tuple) -> None:
-    """Inside a frozen function: rebuild such sensors' derived members (a batch's children
-    too) from Python scalars, so every variable the recording reads is an input or created
-    while recording (a tiny kernel, replayed with the render). A no-op for other sensors."""
-    for sensor, fov in zip(_cameras(scene), x_fov, strict=True):
-        if sensor.class_name() not in _UNTRAVERSED_SENSORS:
+def _rebuild_sensor(scene, sensor: int, x_fov: tuple) -> None:
+    """Inside a frozen function: rebuild such sensors' derived members from Python scalars, so
+    every variable the recording reads is an input or created while recording (a tiny kernel,
+    replayed with the render). A no-op for other sensors."""
+    for camera, fov in zip(_cameras(scene, sensor), x_fov, strict=True):
+        if camera.class_name() not in _UNTRAVERSED_SENSORS:
             continue
         if fov is not None:  # thin lens: its evaluated x_fov feeds the projection
-            mi.traverse(sensor)["x_fov"] = fov
+            mi.traverse(camera)["x_fov"] = fov
         # a non-empty key list without "to_world": with it (or empty) Endpoint re-reads the
         # transform's value into its scalar copy, a read that a recording refuses
-        sensor.parameters_changed(["x_fov"])
+        camera.parameters_changed(["x_fov"])
 
 
-def _sensor_fov(scene) -> tuple:
+def _sensor_fov(scene, sensor: int) -> tuple:
     """Each camera's field of view as a Python float where it is a thin lens (read before any
     recording), for `_rebuild_sensor`; None for other sensors."""
     return tuple(
-        float(mi.traverse(s)["x_fov"][0]) if s.class_name() == "ThinLensCamera" else None
-        for s in _cameras(scene)
+        float(mi.traverse(c)["x_fov"][0]) if c.class_name() == "ThinLensCamera" else None
+        for c in _cameras(scene, sensor)
     )
 
 
-def _reverse_pass(scene, grad_in, seed, spp: int, keys: tuple, x_fov: tuple) -> list:
+def _reverse_pass(scene, grad_in, seed, spp: int, keys: tuple, sensor: int, x_fov: tuple) -> list:
     """Gradients of `<grad_in, render>` with respect to the parameters at `keys` (a frozen
     function's body: Dr.Jit inputs only, the AD state set and cleared inside)."""
-    _rebuild_sensor(scene, x_fov)
+    _rebuild_sensor(scene, sensor, x_fov)
     params = mi.traverse(scene)
     for key in keys:
         dr.enable_grad(params[key])
     params.update()
-    scene.integrator().render_backward(scene, params, grad_in, seed=seed, spp=spp)
+    scene.integrator().render_backward(scene, params, grad_in, sensor, seed=seed, spp=spp)
     grads = [dr.grad(params[key]) for key in keys]
     for key in keys:
         dr.disable_grad(params[key])
     return grads
 
 
-def _forward_pass(scene, tangents: list, seed, spp: int, keys: tuple, x_fov: tuple):
+def _forward_pass(scene, tangents: list, seed, spp: int, keys: tuple, sensor: int, x_fov: tuple):
     """The forward-mode derivative of the render along `tangents` (one per parameter at `keys`;
     a frozen function's body: Dr.Jit inputs only, the AD state set and cleared inside)."""
-    _rebuild_sensor(scene, x_fov)
+    _rebuild_sensor(scene, sensor, x_fov)
     params = mi.traverse(scene)
     for key in keys:
         dr.enable_grad(params[key])
     params.update()  # values the plugins derive in `parameters_changed` carry derivatives
     for key, tangent in zip(keys, tangents, strict=True):
         dr.set_grad(params[key], tangent)
-    out = scene.integrator().render_forward(scene, params, seed=seed, spp=spp)
+    out = scene.integrator().render_forward(scene, params, sensor, seed=seed, spp=spp)
     for key in keys:
         dr.disable_grad(params[key])
     return out
@@ -118,9 +108,9 @@ def _no_gc():
             gc.enable()
 
 
-def _primal(scene, seed, spp: int, x_fov: tuple):
-    _rebuild_sensor(scene, x_fov)
-    return mi.render(scene, spp=spp, seed=seed)
+def _primal(scene, seed, spp: int, sensor: int, x_fov: tuple):
+    _rebuild_sensor(scene, sensor, x_fov)
+    return mi.render(scene, sensor=sensor, spp=spp, seed=seed)
 
 
 #: Traverse keys of emitter radiance by scale: every light's, the environment's.
@@ -161,73 +151,49 @@ def _like(current, values):
 GRAD_SEED_OFFSET = 0x5EED1
 
 
-#: A frozen batch of thin-lens or orthographic cameras checks this many of its first replays
-#: against a plain call (see `_Frozen`).
-CHECKED_REPLAYS = 2
-
-
-def _same(a, b) -> bool:
-    """Two renderer pass outputs (arrays, or lists of them) equal to float rounding."""
-    if isinstance(a, list | tuple):
-        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    scale = max(float(np.max(np.abs(b), initial=0.0)), 1e-30)
-    return a.shape == b.shape and bool(np.allclose(a, b, rtol=1e-3, atol=1e-5 * scale))
-
-
 class _Frozen:
     """`fn` as a Dr.Jit frozen function, and plainly from the first recording that fails (a
-    thin-lens or orthographic camera of a scene loaded elsewhere, still alive, traced unrebuilt
-    into a batch's recording). With `alone` (such a batch), plainly from the first call that
-    finds another `_UNTRAVERSED` group alive, and its first `CHECKED_REPLAYS` replays are
-    checked against a plain call: a batch of five thin-lens (or orthographic) views of a glazed
-    sphere replayed wrong gradients from the third call on (ior -0.465 against -0.066; its
-    primal right), where the cup's five and two to four of the sphere's matched exactly over
-    eight calls (Dr.Jit 1.5 / Mitsuba 3.9.1; why was not found). A mismatch runs it plainly
-    from then on. A module function, not a bound method (see `_Group`)."""
+    thin-lens or orthographic camera of another scene, still alive, traced unrebuilt into a
+    `batch` sensor's recording: its virtual call on the cameras traces every live camera of the
+    process). A module function, not a bound method (see `_Group`)."""
 
-    def __init__(self, fn, alone: bool = False):
-        self.fn, self.frozen, self.alone = fn, dr.freeze(fn), alone
-        self.checked = 0
+    def __init__(self, fn):
+        self.fn, self.frozen = fn, dr.freeze(fn)
 
     def __call__(self, *args):
-        if self.alone and len(_UNTRAVERSED) > 1:
-            self.frozen = None  # for good: its plain calls replace what a recording captured
         if self.frozen is not None:
             try:
-                recordings = self.frozen.n_recordings
-                out = self.frozen(*args)
+                return self.frozen(*args)
             except RuntimeError as err:
                 if not str(err).startswith("record()"):
                     raise
                 log.info("not frozen (%s): %s", self.fn.__name__, err.__cause__ or err)
                 self.frozen = None
-            else:
-                replayed = self.frozen.n_recordings == recordings
-                if not (self.alone and replayed and self.checked < CHECKED_REPLAYS):
-                    return out
-                self.checked += 1
-                plain = self.fn(*args)
-                if _same(out, plain):
-                    return out
-                log.warning(
-                    "a frozen %s of thin-lens/orthographic cameras replayed a wrong result; "
-                    "it runs unfrozen from now on",
-                    self.fn.__name__,
-                )
-                self.frozen = None
-                return plain
         return self.fn(*args)
 
 
 class _Group:
-    """Views rendered together: one loaded scene (a `batch` sensor when several), its parameters
-    and, per free parameter, the traverse keys it sets (and emitter scales' configured values)."""
+    """Views rendered together: one loaded scene, its parameters and, per free parameter, the
+    traverse keys it sets (and emitter scales' configured values). Its `parts` are the scene's
+    sensors, each with the views it renders: several views of perspective cameras through one
+    `batch` sensor (side by side in one film), those of thin-lens or orthographic cameras one
+    sensor each (`_UNTRAVERSED_SENSORS`: a frozen `batch` of them replayed wrong derivatives
+    while other scenes were alive in the process, Dr.Jit 1.5 / Mitsuba 3.9.1; one sensor per
+    view renders the same kernel for each, compiled once)."""
 
     def __init__(self, capture: Capture, views: list[int], material, free: list[Free], freeze):
         scene = scene_dict(capture.scene_of(views[0]), material, 0, 1)
-        if len(views) > 1:
-            scene["sensor"] = batch_sensor_dict([capture.views[i].camera for i in views], 1)
+        cameras = [capture.views[i].camera for i in views]
+        untraversed = any(sensor_dict(c, 1)["type"] != "perspective" for c in cameras)
+        if len(views) == 1:
+            self.parts = [(0, views)]
+        elif untraversed:
+            del scene["sensor"]
+            scene.update({f"sensor_{k:04d}": sensor_dict(c, 1) for k, c in enumerate(cameras)})
+            self.parts = [(k, [v]) for k, v in enumerate(views)]
+        else:
+            scene["sensor"] = batch_sensor_dict(cameras, 1)
+            self.parts = [(0, views)]
         self.views, self.scene = views, mi.load_dict(scene)
         self.params = mi.traverse(self.scene)
         name = capture.views[views[0]].name
@@ -239,15 +205,10 @@ class _Group:
             for k in ks
         }
         self.params.keep([k for ks in self.targets for k in ks])
-        self.fov = _sensor_fov(self.scene)
-        untraversed = any(s.class_name() in _UNTRAVERSED_SENSORS for s in _cameras(self.scene))
-        self.untraversed = untraversed
-        if untraversed:
-            _UNTRAVERSED.add(self)
-        alone = untraversed and len(views) > 1
+        self.fov = [_sensor_fov(self.scene, sensor) for sensor, _ in self.parts]
 
         def wrap(fn):
-            return _Frozen(fn, alone) if freeze else fn
+            return _Frozen(fn) if freeze else fn
 
         # module functions, not bound methods: a Renderer holding its own bound methods is a
         # reference cycle, freed only by the cyclic collector, possibly inside a later recording
@@ -261,20 +222,20 @@ class Renderer:
     sample count between calls does not recompile kernels. All outputs are float32, views
     flattened and concatenated in the capture's order.
 
-    Views that share the scene's lights and their size render together through one `batch`
-    sensor (side by side in one film): one kernel per pass for all of them, where one scene per
-    view compiles one per view (the cup's reverse pass: ~15 s of LLVM each on 2 cores). Views
-    with their own lights (photometric stereo) get a scene each.
+    Views that share the scene's lights and their size render from one scene: through one
+    `batch` sensor (side by side in one film, one kernel per pass for all of them), or with
+    thin-lens or orthographic cameras one sensor each (one kernel, launched per view); one scene
+    per view would compile one kernel per view (the cup's reverse pass: ~15 s of LLVM each on 2
+    cores). Views with their own lights (photometric stereo) get a scene each.
 
     With `freeze` (the default) primal renders, reverse passes and the Jacobian's forward passes
     are Dr.Jit frozen functions: recorded at the first call per spp, replayed after without
     re-tracing the path tracer in Python (measured on the Cycles sphere at 8 spp: 1.7x faster
     primal, 2.1x faster reverse pass; a Jacobian of two 48x36 views 4-6x faster). Thin-lens and
     orthographic cameras, which Mitsuba 3.9 does not declare to the recording, are rebuilt
-    inside it (`_rebuild_sensor`). A batch of them is frozen while it is the one scene with such
-    cameras alive (`_UNTRAVERSED`; the cup's five thin-lens views of 64x56: an Adam step at 8
-    spp 0.69-0.82 s frozen, 1.19 s re-traced, same run). A function whose recording fails runs
-    unfrozen from then on (`_Frozen`). Nothing is frozen when a texture is free (replaying a
+    inside it (`_rebuild_sensor`); the cup's five thin-lens views of 64x56: an Adam step at 8
+    spp 0.69-0.82 s frozen, 1.19 s re-traced. A function whose recording fails runs unfrozen
+    from then on (`_Frozen`). Nothing is frozen when a texture is free (replaying a
     frozen render after a bitmap's data was replaced crashed: segmentation fault, Dr.Jit 1.5 /
     Mitsuba 3.9, a 16x16 mask texture)."""
 
@@ -300,21 +261,18 @@ class Renderer:
         freeze = freeze and not any(f.shape for f in free)
         groups = [list(range(len(views)))] if batched else [[i] for i in range(len(views))]
         self.groups = [_Group(capture, g, material, free, freeze) for g in groups]
-        #: A group with thin-lens or orthographic cameras: its batch is frozen only while no
-        #: other such group is alive (`Problem.release` frees this one when it is done)
-        self.untraversed = any(g.untraversed for g in self.groups)
         self.scenes = [g.scene for g in self.groups]
         self.params = [g.params for g in self.groups]
 
-    def _split(self, group: _Group, image) -> list[np.ndarray]:
-        """A group's image (views side by side) as its views' flat images."""
+    def _split(self, views: list[int], image) -> list[np.ndarray]:
+        """A sensor's image (`views` side by side) as its views' flat images."""
         image = np.asarray(image, np.float32)[..., :3]
-        w = self.shapes[group.views[0]][1]
-        return [image[:, k * w : (k + 1) * w].ravel() for k in range(len(group.views))]
+        w = self.shapes[views[0]][1]
+        return [image[:, k * w : (k + 1) * w].ravel() for k in range(len(views))]
 
-    def _join(self, group: _Group, flat_views: list[np.ndarray]) -> np.ndarray:
-        """Views' flat images (cotangents) side by side as the group's image."""
-        shapes = [self.shapes[v] for v in group.views]
+    def _join(self, views: list[int], flat_views: list[np.ndarray]) -> np.ndarray:
+        """Views' flat images (cotangents) side by side as their sensor's image."""
+        shapes = [self.shapes[v] for v in views]
         parts = [f.reshape(s) for f, s in zip(flat_views, shapes, strict=True)]
         return np.ascontiguousarray(np.concatenate(parts, axis=1), np.float32)
 
@@ -353,14 +311,20 @@ class Renderer:
     def _offsets(self) -> list[int]:
         return list(np.cumsum([0] + [int(np.prod(s)) for s in self.shapes]))
 
+    @staticmethod
+    def _seed(seed: int, g: int, sensor: int):
+        """A sensor's seed: views rendered apart get independent samples."""
+        return mi.UInt32((int(seed) + 7919 * g + 104729 * sensor) % 2**32)
+
     def render(self, values: np.ndarray, seed: int, spp: int) -> np.ndarray:
-        out = []
+        out = [None] * len(self.shapes)
         for g, group in enumerate(self.groups):
             self._set(group, values)
-            seed_g = mi.UInt32(int(seed) + 7919 * g)
-            with _no_gc():
-                image = group.primal(group.scene, seed_g, spp, group.fov)
-            out += self._split(group, image)
+            for (sensor, views), fov in zip(group.parts, group.fov, strict=True):
+                with _no_gc():
+                    image = group.primal(group.scene, self._seed(seed, g, sensor), spp, sensor, fov)
+                for v, part in zip(views, self._split(views, image), strict=True):
+                    out[v] = part
         return np.concatenate(out)
 
     def vjp(self, values: np.ndarray, seed: int, spp: int, cotangent: np.ndarray) -> np.ndarray:
@@ -369,21 +333,23 @@ class Renderer:
         offsets = self._offsets()
         for g, group in enumerate(self.groups):
             self._set(group, values)
-            flat = [cotangent[offsets[v] : offsets[v + 1]] for v in group.views]
-            grad_in = mi.TensorXf(self._join(group, flat))
-            seed_g = mi.UInt32(int(seed) + 7919 * g + GRAD_SEED_OFFSET)
             keys = tuple(k for ks in group.targets for k in ks)
-            with _no_gc():
-                grads = iter(group.reverse(group.scene, grad_in, seed_g, spp, keys, group.fov))
-            i = 0
-            for f, ks in zip(self.free, group.targets, strict=True):
-                for key in ks:
-                    d = np.asarray(next(grads), np.float64)
-                    if f.emitter:  # d/ds of base * s
-                        grad[i] += float(np.sum(d.reshape(-1) * group.bases[key].reshape(-1)))
-                    else:
-                        grad[i : i + f.size] += np.ravel(d).astype(np.float32)
-                i += f.size
+            for (sensor, views), fov in zip(group.parts, group.fov, strict=True):
+                flat = [cotangent[offsets[v] : offsets[v + 1]] for v in views]
+                grad_in = mi.TensorXf(self._join(views, flat))
+                seed_s = self._seed(seed + GRAD_SEED_OFFSET, g, sensor)
+                with _no_gc():
+                    grads = group.reverse(group.scene, grad_in, seed_s, spp, keys, sensor, fov)
+                grads, i = iter(grads), 0
+                for f, ks in zip(self.free, group.targets, strict=True):
+                    for key in ks:
+                        d = np.asarray(next(grads), np.float64)
+                        if f.emitter:  # d/ds of base * s
+                            bases = group.bases[key].reshape(-1)
+                            grad[i] += float(np.sum(d.reshape(-1) * bases))
+                        else:
+                            grad[i : i + f.size] += np.ravel(d).astype(np.float32)
+                    i += f.size
             self._drop_ad(group, values)
         return grad
 
@@ -414,7 +380,6 @@ class Renderer:
         for g, group in enumerate(self.groups):
             self._set(group, values)
             keys = tuple(k for ks in group.targets for k in ks)
-            seed_g = mi.UInt32(int(j_seed) + 7919 * g)
             column = 0
             for f in self.free:
                 for c in range(f.size):
@@ -426,10 +391,14 @@ class Renderer:
                         for other, other_keys in zip(self.free, group.targets, strict=True)
                         for key in other_keys
                     ]
-                    with _no_gc():
-                        out = group.forward(group.scene, tangents, seed_g, j_spp, keys, group.fov)
-                    for v, part in zip(group.views, self._split(group, out), strict=True):
-                        jac[offsets[v] : offsets[v + 1], column] = part
+                    for (sensor, views), fov in zip(group.parts, group.fov, strict=True):
+                        seed_s = self._seed(j_seed, g, sensor)
+                        with _no_gc():
+                            out = group.forward(
+                                group.scene, tangents, seed_s, j_spp, keys, sensor, fov
+                            )
+                        for v, part in zip(views, self._split(views, out), strict=True):
+                            jac[offsets[v] : offsets[v + 1], column] = part
                     column += 1
             self._drop_ad(group, values)
         return image, jac

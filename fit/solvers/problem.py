@@ -4,7 +4,6 @@ loaded on first use)."""
 
 from __future__ import annotations
 
-import gc
 from dataclasses import dataclass, field
 
 import jax
@@ -68,16 +67,6 @@ class Problem:
         return image.astype(np.float32), np.sqrt(weight / max(weight.sum() / 3, 1.0)).astype(
             np.float32
         )
-
-    def release(self, downscale: int, untraversed_only: bool = False) -> None:
-        """Free the loaded scenes at a resolution (with `untraversed_only`, only where they hold
-        thin-lens or orthographic cameras: `Renderer.untraversed`), between renders: freeing a
-        scene inside a Dr.Jit recording aborts the process, so the collector runs here."""
-        renderer = self._cache.get(("renderer", downscale))
-        if renderer is None or (untraversed_only and not renderer.untraversed):
-            return
-        del self._cache[("renderer", downscale)], renderer
-        gc.collect()
 
     def renderer(self, downscale: int = 1):
         """The loaded scenes at a resolution, a `fit.render.Renderer` (built once: phases at the

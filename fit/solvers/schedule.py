@@ -129,17 +129,6 @@ def solve(
     )
 
 
-def _release_finished(problem: Problem, phases, k: int) -> None:
-    """After phase k: free the scenes of a resolution no later phase (nor the uncertainty, at
-    full resolution) renders, where they hold thin-lens or orthographic cameras. Such a batch
-    is frozen only while it is the one alive (`fit.render.renderer`): the default schedule's
-    half-resolution scenes, kept, left every full-resolution step of a thin-lens capture
-    re-traced."""
-    later = {p.downscale for p in phases[k + 1 :]} | {1}
-    for downscale in {p.downscale for p in phases[: k + 1]} - later:
-        problem.release(downscale, untraversed_only=True)
-
-
 def run_schedule(
     problem: Problem,
     start: dict,
@@ -209,7 +198,6 @@ def run_schedule(
         reports += result.reports
         u, steps = result.u, steps + result.steps
         ends.append(len(history))
-        _release_finished(problem, phases, k)
         if checkpoint is not None:  # a phase's end is always saved
             checkpoint.latest = {
                 "phase": k + 1,

@@ -4,7 +4,6 @@ captures of any size line up with renders at the smaller size."""
 from __future__ import annotations
 
 import dataclasses
-import gc
 from pathlib import Path
 
 import numpy as np
@@ -66,20 +65,25 @@ def batch_capture(kinds: list[str]) -> tuple[Capture, object]:
 @pytest.mark.parametrize(
     "kinds", [["thinlens"] * 3, ["orthographic"] * 2, ["thinlens", "orthographic", "perspective"]]
 )
-def test_a_batch_of_any_cameras_renders_frozen_and_right(kinds):
-    """A batch of thin-lens or orthographic cameras was not frozen (the cup's Adam step 1.19 s
-    instead of 0.69-0.82 s). Alone, its frozen primal, reverse and forward passes equal an unfrozen
-    renderer's (computed first, then freed). Once another scene with such cameras is alive it
-    runs unfrozen, for good (frozen replays beside one gave zero derivatives), still right."""
-    # earlier tests' garbage may still hold scenes with such cameras (freed whenever the collector
-    # next runs): this test is of a batch alone. Without this, in the full suite's order, the
-    # unfrozen reference's Jacobian came out all zero in two runs of three (2026-12-01).
-    gc.collect()
+def test_a_batch_of_any_cameras_renders_frozen_and_right_beside_other_scenes(kinds):
+    """Views of thin-lens or orthographic cameras rendered through one `batch` sensor, frozen,
+    replayed wrong derivatives once other scenes were alive in the process (live perspective
+    scenes: the Jacobian off by up to 220; in the full test suite, 3 runs of 3). They render one
+    sensor each: with other scenes alive (perspective, thin-lens, orthographic), the frozen
+    primal, reverse and forward passes stay frozen and equal an unfrozen renderer's over
+    several replays."""
     capture, material = batch_capture(kinds)
     free = resolve(material, ["glaze.pigment", "glaze.roughness", "glaze.ior"])
+    others = []
+    for kind in ("perspective", "thinlens", "orthographic", "perspective"):
+        other_capture, other_material = sphere_capture(kind, 8, 6)
+        other = Renderer(other_capture, other_material, resolve(material, ["glaze.roughness"]))
+        assert other.render(np.asarray([0.2], np.float32), 0, 1).max() > 0
+        others.append(other)
     rng = np.random.default_rng(1)
     xs = [
-        np.asarray(v, np.float32) for v in ([0.2, 0.3, 0.4, 0.1, 1.5], [0.5, 0.1, 0.1, 0.05, 1.3])
+        np.asarray(v, np.float32)
+        for v in ([0.2, 0.3, 0.4, 0.1, 1.5], [0.5, 0.1, 0.1, 0.05, 1.3], [0.3, 0.3, 0.3, 0.2, 1.4])
     ]
     plain = Renderer(capture, material, free, False)
     cotangent = rng.normal(size=plain.size).astype(np.float32)
@@ -87,112 +91,58 @@ def test_a_batch_of_any_cameras_renders_frozen_and_right(kinds):
         (plain.render(x, 3, 4), plain.vjp(x, 3, 4, cotangent), plain.jacobian(x, 3, 2)[1])
         for x in xs
     ]
-    del plain
-    gc.collect()
-
-    def check(renderer, n=2):
-        for x, (image, grad, jac) in zip(xs[:n], expected[:n], strict=True):
-            np.testing.assert_allclose(renderer.render(x, 3, 4), image, rtol=1e-4, atol=1e-6)
-            np.testing.assert_allclose(renderer.vjp(x, 3, 4, cotangent), grad, rtol=1e-3, atol=1e-5)
-            np.testing.assert_allclose(renderer.jacobian(x, 3, 2)[1], jac, rtol=1e-3, atol=1e-5)
-
     frozen = Renderer(capture, material, free)
     (group,) = frozen.groups
-    check(frozen)
+    for _ in range(2):  # recordings, then replays
+        for x, (image, grad, jac) in zip(xs, expected, strict=True):
+            np.testing.assert_allclose(frozen.render(x, 3, 4), image, rtol=1e-4, atol=1e-6)
+            np.testing.assert_allclose(frozen.vjp(x, 3, 4, cotangent), grad, rtol=0.01, atol=1e-5)
+            mismatched = ~np.isclose(frozen.jacobian(x, 3, 2)[1], jac, rtol=1e-3, atol=1e-5)
+            # beside other scenes a sample's path now and then differs (float rounding at a
+            # branch): measured up to 15 of 19440 entries; the wrong replays were 15-35 %
+            assert mismatched.mean() < 0.005, mismatched.mean()
     assert all(f.frozen is not None for f in (group.primal, group.reverse, group.forward))
-    other = Renderer(capture.downscaled(2), material, free)
-    assert other.render(xs[0], 2, 2).max() > 0
-    check(frozen, 1)
-    assert all(f.frozen is None for f in (group.primal, group.reverse, group.forward))
-    del other
-    gc.collect()
-    check(frozen, 1)
 
 
-def test_a_schedule_frees_finished_thin_lens_scenes():
-    """The default schedule's half-resolution scenes of a thin-lens batch, kept alive, left every
-    full-resolution step re-traced (the cup: a `gn` phase of 8 steps 125 s, 44 s with them
-    freed). After the last half-resolution phase they are freed, and the full-resolution batch
-    renders frozen; perspective scenes are kept (nothing to gain, kernels to recompile)."""
-    from fit.render import renderer as module
+def test_a_schedule_at_two_resolutions_renders_thin_lens_views_frozen():
+    """The default schedule's half-resolution scenes stay alive beside the full-resolution ones:
+    a thin-lens batch's full-resolution passes are frozen all the same (the cup: a `gn` phase of
+    8 steps 125 s re-traced, 44 s frozen)."""
     from fit.solvers import Problem, run_schedule
     from fit.solvers.schedule import Phase
 
-    capture, material = batch_capture(["perspective"] * 2)
-    problem = Problem(capture, material, resolve(material, ["glaze.roughness"]))
-    problem.renderer(2)
-    problem.release(2, untraversed_only=True)
-    assert ("renderer", 2) in problem._cache  # perspective: kept
     capture, material = batch_capture(["thinlens"] * 2)
     problem = Problem(capture, material, resolve(material, ["glaze.roughness"]))
     phases = (
         Phase(solver="adam", steps=1, spp=1, downscale=2, lr=0.05),
         Phase(solver="gn", steps=2, spp=1, jacobian_spp=1),
     )
-    gc.collect()
-    before = len(module._UNTRAVERSED)
     result = run_schedule(problem, {"glaze.roughness": 0.2}, phases, 0, uncertainty_spp=2)
     assert np.isfinite(result.values["glaze.roughness"])
-    (group,) = problem.renderer(1).groups
-    assert ("renderer", 2) not in problem._cache and len(module._UNTRAVERSED) == before + 1
-    assert all(f.frozen is not None for f in (group.primal, group.reverse, group.forward))
-
-
-class _Replays:
-    """A stand-in frozen function: records at its first two calls (right), then replays
-    `replayed(x)`."""
-
-    def __init__(self, fn, replayed):
-        self.fn, self.replayed, self.n_recordings = fn, replayed, 0
-
-    def __call__(self, x):
-        if self.n_recordings < 2:
-            self.n_recordings += 1
-            return self.fn(x)
-        return self.replayed(x)
-
-
-@pytest.mark.parametrize("wrong", [False, True])
-def test_a_batchs_first_replays_are_checked_against_plain_calls(wrong):
-    """A frozen batch of thin-lens cameras (five of them on a glazed sphere) replayed wrong
-    gradients from its third call: its first replays are compared with a plain call, and a
-    mismatch runs it plainly for good (the plain answer returned); a right one stays frozen."""
-    from fit.render.renderer import CHECKED_REPLAYS, _Frozen
-
-    def fn(x):
-        return [np.asarray(x) * 2.0]
-
-    frozen = _Frozen(fn, alone=True)
-    frozen.frozen = _Replays(fn, (lambda x: [np.asarray(x) * 3.0]) if wrong else fn)
-    plain_calls = []
-    frozen.fn = lambda x: plain_calls.append(x) or fn(x)
-    for i in range(2 + CHECKED_REPLAYS + 2):
-        np.testing.assert_allclose(frozen(np.float32(i + 1))[0], 2.0 * (i + 1))
-    if wrong:
-        assert frozen.frozen is None and len(plain_calls) == 4  # from the first replay on
-    else:
-        assert frozen.frozen is not None and len(plain_calls) == CHECKED_REPLAYS
+    for downscale in (1, 2):
+        (group,) = problem.renderer(downscale).groups
+        assert len(group.parts) == 2
+        assert all(f.frozen is not None for f in (group.primal, group.reverse, group.forward))
 
 
 def test_a_recording_that_fails_runs_unfrozen():
-    """A thin-lens scene loaded outside any renderer and still alive is traced into a batch's
-    recording unrebuilt, and the recording fails: the renderer then runs that pass unfrozen,
-    with the same image, instead of failing the fit."""
+    """A thin-lens scene loaded outside any renderer and still alive is traced into a perspective
+    batch's recording (its virtual call on the cameras traces every live camera) unrebuilt, and
+    the recording fails: the renderer then runs that pass unfrozen, with the same image, instead
+    of failing the fit."""
     import mitsuba as mi
 
     from fit.render.scene import scene_dict
 
-    capture, material = batch_capture(["thinlens"] * 2)
+    capture, material = batch_capture(["perspective"] * 2)
     free = resolve(material, ["glaze.roughness"])
     x = np.asarray([0.2], np.float32)
-    plain = Renderer(capture, material, free, False)
-    expected = plain.render(x, 3, 4)
-    del plain  # a second renderer's group alone would turn the batch unfrozen: not this case
-    gc.collect()
-    stray = mi.load_dict(scene_dict(capture.scene_of(0), material, 0, 2))
+    expected = Renderer(capture, material, free, False).render(x, 3, 4)
+    stray_capture, _ = sphere_capture("thinlens")
+    stray = mi.load_dict(scene_dict(stray_capture.scene_of(0), material, 0, 2))
     frozen = Renderer(capture, material, free)
     primal = frozen.groups[0].primal
-    assert primal.frozen is not None and primal.alone
+    assert primal.frozen is not None
     np.testing.assert_allclose(frozen.render(x, 3, 4), expected, rtol=1e-4, atol=1e-6)
     assert primal.frozen is None  # the recording failed: unfrozen from then on
     del stray
@@ -220,10 +170,12 @@ def test_downscaled_capture_of_any_size_matches_a_smaller_render(kind, size):
     assert error < 0.08, error
 
 
-def test_batched_views_come_back_in_the_captures_order():
-    """Eleven views (more than nine: names must not sort 10 before 2) rendered through one batch
-    sensor equal the same views rendered one scene each, view by view."""
-    capture, _ = sphere_capture("perspective", 12, 9)
+@pytest.mark.parametrize("kind", ["perspective", "thinlens"])
+def test_batched_views_come_back_in_the_captures_order(kind):
+    """Eleven views (more than nine: names must not sort 10 before 2) rendered from one scene
+    (a `batch` sensor, or thin-lens cameras one sensor each) equal the same views rendered one
+    scene each, view by view."""
+    capture, _ = sphere_capture(kind, 12, 9)
     base = capture.views[0]
     views = []
     for k in range(11):  # the camera backs off: each view's sphere is smaller
