@@ -155,10 +155,12 @@ class _Frozen:
     """`fn` as a Dr.Jit frozen function, and plainly from the first recording that fails (a
     thin-lens or orthographic camera of another scene, still alive, traced unrebuilt into a
     `batch` sensor's recording: its virtual call on the cameras traces every live camera of the
-    process). A module function, not a bound method (see `_Group`)."""
+    process). A module function, not a bound method (see `_Group`). Dr.Jit warns (on stderr,
+    to the user) once a function has `warn_after` recordings: it records once per sensor and
+    spp, so a group of several sensors allows as many times Dr.Jit's default 10."""
 
-    def __init__(self, fn):
-        self.fn, self.frozen = fn, dr.freeze(fn)
+    def __init__(self, fn, sensors: int = 1):
+        self.fn, self.frozen = fn, dr.freeze(fn, warn_after=10 * sensors)
 
     def __call__(self, *args):
         if self.frozen is not None:
@@ -208,7 +210,7 @@ class _Group:
         self.fov = [_sensor_fov(self.scene, sensor) for sensor, _ in self.parts]
 
         def wrap(fn):
-            return _Frozen(fn) if freeze else fn
+            return _Frozen(fn, len(self.parts)) if freeze else fn
 
         # module functions, not bound methods: a Renderer holding its own bound methods is a
         # reference cycle, freed only by the cyclic collector, possibly inside a later recording
