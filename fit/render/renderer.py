@@ -37,33 +37,42 @@ def _cameras(scene, sensor: int) -> list:
     return [props[k][2] for k in props if k.startswith("view_") and k.endswith(".to_world")]
 
 
-def _rebuild_sensor(scene, sensor: int, x_fov: tuple) -> None:
+#: A thin lens's members its kernels read, set opaque inside the recording from Python floats:
+#: `x_fov` is evaluated at load but not declared to the recording; `aperture_radius` and
+#: `focus_distance` are host literals at load, baked into the kernel (a kernel per view).
+_THIN_LENS_FLOATS = ("x_fov", "aperture_radius", "focus_distance")
+
+
+def _rebuild_sensor(scene, sensor: int, floats: tuple) -> None:
     """Inside a frozen function: rebuild such sensors' derived members from Python scalars, so
     every variable the recording reads is an input or created while recording (a tiny kernel,
     replayed with the render). A no-op for other sensors."""
-    for camera, fov in zip(_cameras(scene, sensor), x_fov, strict=True):
+    for camera, values in zip(_cameras(scene, sensor), floats, strict=True):
         if camera.class_name() not in _UNTRAVERSED_SENSORS:
             continue
-        if fov is not None:  # thin lens: its evaluated x_fov feeds the projection
-            mi.traverse(camera)["x_fov"] = fov
+        params = mi.traverse(camera)
+        for key, value in zip(_THIN_LENS_FLOATS, values or (), strict=False):
+            params[key] = dr.opaque(mi.Float, value)
         # a non-empty key list without "to_world": with it (or empty) Endpoint re-reads the
         # transform's value into its scalar copy, a read that a recording refuses
         camera.parameters_changed(["x_fov"])
 
 
-def _sensor_fov(scene, sensor: int) -> tuple:
-    """Each camera's field of view as a Python float where it is a thin lens (read before any
-    recording), for `_rebuild_sensor`; None for other sensors."""
+def _sensor_floats(scene, sensor: int) -> tuple:
+    """Each camera's `_THIN_LENS_FLOATS` as Python floats where it is a thin lens (read before
+    any recording), for `_rebuild_sensor`; None for other sensors."""
     return tuple(
-        float(mi.traverse(c)["x_fov"][0]) if c.class_name() == "ThinLensCamera" else None
+        tuple(float(mi.traverse(c)[key][0]) for key in _THIN_LENS_FLOATS)
+        if c.class_name() == "ThinLensCamera"
+        else None
         for c in _cameras(scene, sensor)
     )
 
 
-def _reverse_pass(scene, grad_in, seed, spp: int, keys: tuple, sensor: int, x_fov: tuple) -> list:
+def _reverse_pass(scene, grad_in, seed, spp: int, keys: tuple, sensor: int, floats: tuple) -> list:
     """Gradients of `<grad_in, render>` with respect to the parameters at `keys` (a frozen
     function's body: Dr.Jit inputs only, the AD state set and cleared inside)."""
-    _rebuild_sensor(scene, sensor, x_fov)
+    _rebuild_sensor(scene, sensor, floats)
     params = mi.traverse(scene)
     for key in keys:
         dr.enable_grad(params[key])
@@ -75,10 +84,10 @@ def _reverse_pass(scene, grad_in, seed, spp: int, keys: tuple, sensor: int, x_fo
     return grads
 
 
-def _forward_pass(scene, tangents: list, seed, spp: int, keys: tuple, sensor: int, x_fov: tuple):
+def _forward_pass(scene, tangents: list, seed, spp: int, keys: tuple, sensor: int, floats: tuple):
     """The forward-mode derivative of the render along `tangents` (one per parameter at `keys`;
     a frozen function's body: Dr.Jit inputs only, the AD state set and cleared inside)."""
-    _rebuild_sensor(scene, sensor, x_fov)
+    _rebuild_sensor(scene, sensor, floats)
     params = mi.traverse(scene)
     for key in keys:
         dr.enable_grad(params[key])
@@ -108,8 +117,8 @@ def _no_gc():
             gc.enable()
 
 
-def _primal(scene, seed, spp: int, sensor: int, x_fov: tuple):
-    _rebuild_sensor(scene, sensor, x_fov)
+def _primal(scene, seed, spp: int, sensor: int, floats: tuple):
+    _rebuild_sensor(scene, sensor, floats)
     return mi.render(scene, sensor=sensor, spp=spp, seed=seed)
 
 
@@ -191,7 +200,14 @@ class _Group:
             self.parts = [(0, views)]
         elif untraversed:
             del scene["sensor"]
-            scene.update({f"sensor_{k:04d}": sensor_dict(c, 1) for k, c in enumerate(cameras)})
+            sensors = [sensor_dict(c, 1) for c in cameras]
+            # clip distances are host scalars, baked into the kernel: one range for all views
+            # (each sensor's own compiled a kernel per view: the cup's first run 5 min 22 s)
+            near = min(d["near_clip"] for d in sensors)
+            far = max(d["far_clip"] for d in sensors)
+            for d in sensors:
+                d.update(near_clip=near, far_clip=far)
+            scene.update({f"sensor_{k:04d}": d for k, d in enumerate(sensors)})
             self.parts = [(k, [v]) for k, v in enumerate(views)]
         else:
             scene["sensor"] = batch_sensor_dict(cameras, 1)
@@ -207,7 +223,7 @@ class _Group:
             for k in ks
         }
         self.params.keep([k for ks in self.targets for k in ks])
-        self.fov = [_sensor_fov(self.scene, sensor) for sensor, _ in self.parts]
+        self.floats = [_sensor_floats(self.scene, sensor) for sensor, _ in self.parts]
 
         def wrap(fn):
             return _Frozen(fn, len(self.parts)) if freeze else fn
@@ -322,9 +338,11 @@ class Renderer:
         out = [None] * len(self.shapes)
         for g, group in enumerate(self.groups):
             self._set(group, values)
-            for (sensor, views), fov in zip(group.parts, group.fov, strict=True):
+            for (sensor, views), floats in zip(group.parts, group.floats, strict=True):
                 with _no_gc():
-                    image = group.primal(group.scene, self._seed(seed, g, sensor), spp, sensor, fov)
+                    image = group.primal(
+                        group.scene, self._seed(seed, g, sensor), spp, sensor, floats
+                    )
                 for v, part in zip(views, self._split(views, image), strict=True):
                     out[v] = part
         return np.concatenate(out)
@@ -336,12 +354,12 @@ class Renderer:
         for g, group in enumerate(self.groups):
             self._set(group, values)
             keys = tuple(k for ks in group.targets for k in ks)
-            for (sensor, views), fov in zip(group.parts, group.fov, strict=True):
+            for (sensor, views), floats in zip(group.parts, group.floats, strict=True):
                 flat = [cotangent[offsets[v] : offsets[v + 1]] for v in views]
                 grad_in = mi.TensorXf(self._join(views, flat))
                 seed_s = self._seed(seed + GRAD_SEED_OFFSET, g, sensor)
                 with _no_gc():
-                    grads = group.reverse(group.scene, grad_in, seed_s, spp, keys, sensor, fov)
+                    grads = group.reverse(group.scene, grad_in, seed_s, spp, keys, sensor, floats)
                 grads, i = iter(grads), 0
                 for f, ks in zip(self.free, group.targets, strict=True):
                     for key in ks:
@@ -393,11 +411,11 @@ class Renderer:
                         for other, other_keys in zip(self.free, group.targets, strict=True)
                         for key in other_keys
                     ]
-                    for (sensor, views), fov in zip(group.parts, group.fov, strict=True):
+                    for (sensor, views), floats in zip(group.parts, group.floats, strict=True):
                         seed_s = self._seed(j_seed, g, sensor)
                         with _no_gc():
                             out = group.forward(
-                                group.scene, tangents, seed_s, j_spp, keys, sensor, fov
+                                group.scene, tangents, seed_s, j_spp, keys, sensor, floats
                             )
                         for v, part in zip(views, self._split(views, out), strict=True):
                             jac[offsets[v] : offsets[v + 1], column] = part

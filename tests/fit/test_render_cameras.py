@@ -207,3 +207,25 @@ def test_a_sensor_per_view_records_quietly(capfd):
     (group,) = renderer.groups
     assert group.primal.frozen is not None and group.primal.frozen.n_recordings >= 15
     assert "indicates a problem" not in capfd.readouterr().err
+
+
+def test_thin_lens_views_at_any_distance_share_one_kernel():
+    """Each thin-lens view's own clip distances, focus distance and aperture (host literals in
+    Mitsuba) compiled a kernel per view: the cup's first run took 5 min 22 s against 3 min 38 s
+    for its batch. Views at different distances and fields of view render through one kernel."""
+    import drjit as dr
+
+    capture, material = batch_capture(["thinlens"] * 3)
+    views = [
+        dataclasses.replace(v, camera=dataclasses.replace(v.camera, fov_x_deg=30.0 + 5 * k))
+        for k, v in enumerate(capture.views)
+    ]
+    capture = dataclasses.replace(capture, views=views)
+    renderer = Renderer(capture, material, resolve(material, ["glaze.roughness"]), False)
+    spp, (h, w, _) = 4, renderer.shapes[0]
+    dr.kernel_history_clear()
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory):
+        assert renderer.render(np.asarray([0.2], np.float32), 0, spp).max() > 0
+        history = dr.kernel_history()
+    renders = {k["hash"] for k in history if "hash" in k and k["size"] == h * w * spp}
+    assert len(renders) == 1, renders
