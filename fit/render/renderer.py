@@ -195,12 +195,11 @@ class _Group:
     def __init__(self, capture: Capture, views: list[int], material, free: list[Free], freeze):
         scene = scene_dict(capture.scene_of(views[0]), material, 0, 1)
         cameras = [capture.views[i].camera for i in views]
-        untraversed = any(sensor_dict(c, 1)["type"] != "perspective" for c in cameras)
+        sensors = [sensor_dict(c, 1) for c in cameras]
         if len(views) == 1:
-            self.parts = [(0, views)]
-        elif untraversed:
+            parts = [(0, views)]
+        elif any(d["type"] != "perspective" for d in sensors):
             del scene["sensor"]
-            sensors = [sensor_dict(c, 1) for c in cameras]
             # clip distances are host scalars, baked into the kernel: one range for all views
             # (each sensor's own compiled a kernel per view: the cup's first run 5 min 22 s)
             near = min(d["near_clip"] for d in sensors)
@@ -208,10 +207,10 @@ class _Group:
             for d in sensors:
                 d.update(near_clip=near, far_clip=far)
             scene.update({f"sensor_{k:04d}": d for k, d in enumerate(sensors)})
-            self.parts = [(k, [v]) for k, v in enumerate(views)]
+            parts = [(k, [v]) for k, v in enumerate(views)]
         else:
             scene["sensor"] = batch_sensor_dict(cameras, 1)
-            self.parts = [(0, views)]
+            parts = [(0, views)]
         self.views, self.scene = views, mi.load_dict(scene)
         self.params = mi.traverse(self.scene)
         name = capture.views[views[0]].name
@@ -223,7 +222,8 @@ class _Group:
             for k in ks
         }
         self.params.keep([k for ks in self.targets for k in ks])
-        self.floats = [_sensor_floats(self.scene, sensor) for sensor, _ in self.parts]
+        #: (sensor index, its views, its thin lenses' floats for `_rebuild_sensor`)
+        self.parts = [(k, v, _sensor_floats(self.scene, k)) for k, v in parts]
 
         def wrap(fn):
             return _Frozen(fn, len(self.parts)) if freeze else fn
@@ -338,7 +338,7 @@ class Renderer:
         out = [None] * len(self.shapes)
         for g, group in enumerate(self.groups):
             self._set(group, values)
-            for (sensor, views), floats in zip(group.parts, group.floats, strict=True):
+            for sensor, views, floats in group.parts:
                 with _no_gc():
                     image = group.primal(
                         group.scene, self._seed(seed, g, sensor), spp, sensor, floats
@@ -354,7 +354,7 @@ class Renderer:
         for g, group in enumerate(self.groups):
             self._set(group, values)
             keys = tuple(k for ks in group.targets for k in ks)
-            for (sensor, views), floats in zip(group.parts, group.floats, strict=True):
+            for sensor, views, floats in group.parts:
                 flat = [cotangent[offsets[v] : offsets[v + 1]] for v in views]
                 grad_in = mi.TensorXf(self._join(views, flat))
                 seed_s = self._seed(seed + GRAD_SEED_OFFSET, g, sensor)
@@ -411,7 +411,7 @@ class Renderer:
                         for other, other_keys in zip(self.free, group.targets, strict=True)
                         for key in other_keys
                     ]
-                    for (sensor, views), floats in zip(group.parts, group.floats, strict=True):
+                    for sensor, views, floats in group.parts:
                         seed_s = self._seed(j_seed, g, sensor)
                         with _no_gc():
                             out = group.forward(

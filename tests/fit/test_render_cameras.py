@@ -77,7 +77,8 @@ def test_a_batch_of_any_cameras_renders_frozen_and_right_beside_other_scenes(kin
     others = []
     for kind in ("perspective", "thinlens", "orthographic", "perspective"):
         other_capture, other_material = sphere_capture(kind, 8, 6)
-        other = Renderer(other_capture, other_material, resolve(material, ["glaze.roughness"]))
+        other_free = resolve(other_material, ["glaze.roughness"])
+        other = Renderer(other_capture, other_material, other_free)
         assert other.render(np.asarray([0.2], np.float32), 0, 1).max() > 0
         others.append(other)
     rng = np.random.default_rng(1)
@@ -209,15 +210,22 @@ def test_a_sensor_per_view_records_quietly(capfd):
     assert "indicates a problem" not in capfd.readouterr().err
 
 
-def test_thin_lens_views_at_any_distance_share_one_kernel():
+@pytest.mark.parametrize("kind", ["thinlens", "orthographic"])
+def test_views_at_any_distance_share_one_kernel(kind):
     """Each thin-lens view's own clip distances, focus distance and aperture (host literals in
     Mitsuba) compiled a kernel per view: the cup's first run took 5 min 22 s against 3 min 38 s
-    for its batch. Views at different distances and fields of view render through one kernel."""
+    for its batch. Views at different distances and fields of view (thin lens) or widths
+    (orthographic) render through one kernel."""
     import drjit as dr
 
-    capture, material = batch_capture(["thinlens"] * 3)
+    capture, material = batch_capture([kind] * 3)
     views = [
-        dataclasses.replace(v, camera=dataclasses.replace(v.camera, fov_x_deg=30.0 + 5 * k))
+        dataclasses.replace(
+            v,
+            camera=dataclasses.replace(
+                v.camera, fov_x_deg=30.0 + 5 * k, ortho_width=v.camera.ortho_width + 0.2 * k
+            ),
+        )
         for k, v in enumerate(capture.views)
     ]
     capture = dataclasses.replace(capture, views=views)
