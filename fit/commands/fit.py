@@ -171,6 +171,11 @@ def prepare(cfg: FitConfig, holdout: int | None = None) -> Prepared:
                 f"= {cfg.downscale}) leaves a {w}x{h} view: at least {MIN_PIXELS} pixels a side; "
                 "give a smaller factor"
             )
+        if hold := getattr(phase.options, "hold", ()):
+            try:
+                problem.held(hold)
+            except InputError as err:
+                raise InputError(f"{cfg.path}: fit.phases[{k}].{err}") from None
         pixels = sum(v.image.shape[0] * v.image.shape[1] for v in views)
         spp = max(phase.spp, *(_samples(phase, name) for name in SPP_OPTIONS))
         if pixels * spp >= 2**32:

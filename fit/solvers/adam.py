@@ -24,6 +24,13 @@ class AdamOptions(Options):
     that ends at a small rate hands the next one a start near its optimum."""
     average: float = Field(0.0, ge=0.0, le=1.0)
     """Fraction of the last iterates averaged into the result (Polyak; 0: the last iterate)."""
+    hold: tuple[str, ...] = ()
+    """Material keys (or fnmatch patterns: `"*.mask.threshold"`) held at their values through
+    this phase. A mask's threshold moves the boundary between two layers, so its gradient is the
+    difference of their radiances: from neutral starting colours that has the wrong sign as often
+    as not, and a threshold pushed out of the noise's range (about [0.2, 0.8]) lands where the mask
+    no longer changes, with no gradient to bring it back. Held for a first phase, the thresholds
+    move once the colours are near."""
     profile_gains: bool = True
     """Free gains solved in closed form between steps (variable projection) rather than as
     Adam's coordinates; over the averaged tail, from the least-squares sums of its steps."""
@@ -69,7 +76,12 @@ class Adam(AbstractSolver):
         if options.lr_end is not None and steps > 1:
             decay = (options.lr_end / options.lr) ** (1.0 / (steps - 1))
             rate = functools.partial(_geometric, options.lr, decay)
-        solver = optx.OptaxMinimiser(optax.adam(rate), rtol=0.0, atol=0.0)
+        optimiser = optax.adam(rate)
+        if options.hold:  # zeroed before Adam: held coordinates keep zero moments, never move
+            keep = jnp.asarray(problem.held(options.hold) == 0, jnp.float32)
+            zero = optax.stateless(lambda updates, params=None: updates * keep)
+            optimiser = optax.chain(zero, optimiser)
+        solver = optx.OptaxMinimiser(optimiser, rtol=0.0, atol=0.0)
         u = jnp.asarray(u0, jnp.float32)
         f_struct = jax.ShapeDtypeStruct((), jnp.float32)
         state = solver.init(loss, u, jnp.int32(seed), {}, f_struct, None, frozenset())

@@ -4,6 +4,7 @@ loaded on first use)."""
 
 from __future__ import annotations
 
+import fnmatch
 from dataclasses import dataclass, field
 
 import jax
@@ -11,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from captures.capture import Capture
+from captures.errors import InputError
 
 from ..material import Free, Material, as_dict, to_physical, to_unconstrained
 
@@ -146,6 +148,24 @@ class Problem:
                 np.zeros(self.n_gain),
             ]
         ).astype(np.float32)
+
+    def held(self, patterns) -> np.ndarray:
+        """1 for each solver coordinate of a material key matching one of `patterns` (keys or
+        fnmatch patterns), else 0; a pattern matching no free key is an error."""
+        mask, i = np.zeros(self.n_material + self.n_gain, np.int8), 0
+        hits = dict.fromkeys(patterns, False)
+        for f in self.free:
+            for p in patterns:
+                if fnmatch.fnmatchcase(f.key, p):
+                    mask[i : i + f.size], hits[p] = 1, True
+            i += f.size
+        if missing := [p for p, hit in hits.items() if not hit]:
+            keys = ", ".join(f.key for f in self.free)
+            raise InputError(
+                f"hold: {', '.join(map(repr, missing))} matches no free parameter; hold some of "
+                f"fit.free ({keys})"
+            )
+        return mask
 
     def values(self, u) -> dict:
         u = np.asarray(u, dtype=np.float64)

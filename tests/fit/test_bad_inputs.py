@@ -951,6 +951,11 @@ CASES: list[Case] = [
     ("fit-loss", fit_cfg("[fit]\n", '[fit]\nloss = "l3"\n'), ("fit.toml", "fit.loss")),
     ("fit-gains", fit_cfg("[fit]\n", '[fit]\ngains = "rgb"\n'), ("fit.toml", "fit.gains")),
     ("fit-solver", fit_cfg('solver = "adam"', 'solver = "newton"'), ("fit.toml", "solver")),
+    (
+        "fit-hold-unknown",
+        fit_cfg("spp = 1\n", 'spp = 1\nhold = ["*.threshold"]\n'),
+        ("fit.toml", "fit.phases[0].hold", "'*.threshold'", "glaze.roughness"),
+    ),
     ("fit-no-free", fit_cfg('free = ["glaze.roughness"]', "free = []"), ("fit.toml", "fit.free")),
     (
         "fit-not-utf8",

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from captures.capture import Capture, View
+from captures.errors import InputError
 from fit.config import load_render_config
 from fit.material import resolve, to_physical, to_unconstrained
 from fit.render import GRAD_SEED_OFFSET, MATERIAL_PREFIX, Renderer, make_render, render, scene_dict
@@ -432,6 +433,20 @@ def test_non_finite_steps_are_rejected(problem, monkeypatch):
         result = solve(solver, problem, u0, steps=3, spp=4)
         np.testing.assert_array_equal(result.u, u0)
         assert result.reports[0].outcome == "diverged", solver  # said, never silent
+
+
+def test_adam_holds_what_it_is_told_to(problem):
+    """`hold` (keys or patterns) keeps those coordinates exactly where they started while the
+    rest move; a pattern that matches no free parameter is an error naming it and the keys."""
+    start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.2, "glaze.ior": 1.3}
+    u0 = problem.unconstrained(start)
+    result = solve("adam", problem, u0, steps=4, spp=4, lr=0.1, seed=0, hold=["*.ior"])
+    assert result.u[4] == u0[4]
+    assert np.all(result.u[:4] != u0[:4])
+    free = solve("adam", problem, u0, steps=4, spp=4, lr=0.1, seed=0)
+    assert free.u[4] != u0[4]  # the same steps without `hold` move it
+    with pytest.raises(InputError, match=r"'clay\.\*' matches no free parameter.*glaze\.ior"):
+        solve("adam", problem, u0, steps=1, spp=4, hold=["glaze.ior", "clay.*"])
 
 
 def test_a_solver_that_never_moved_says_so():
