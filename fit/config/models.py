@@ -6,14 +6,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from captures import Scene, parse_scene
 from captures.model import NonNegativeInt, PositiveFloat, PositiveInt, StrictModel, parse_model
 
 from ..errors import ConfigError
 from ..material import Material, load_material, read_toml
-from ..solvers.schedule import DEFAULT_SCHEDULE, Phase
+from ..solvers.schedule import DEFAULT_SCHEDULE, Phase, default_schedule
 
 
 class RenderSettings(StrictModel):
@@ -48,6 +48,12 @@ class FitSettings(StrictModel):
             raise ValueError(f"lists {', '.join(twice)} more than once; list each key once")
         return value
 
+    @model_validator(mode="after")
+    def _default_phases(self):
+        if "phases" not in self.model_fields_set:
+            object.__setattr__(self, "phases", list(default_schedule(self.free)))
+        return self
+
     @field_validator("gains", mode="before")
     @classmethod
     def _gains(cls, value):
@@ -66,7 +72,8 @@ class FitSettings(StrictModel):
     holdout: NonNegativeInt = 0
     """Views kept out of the fit and only scored (spread over the views, never the first)."""
     phases: list[Phase] = Field(default_factory=lambda: list(DEFAULT_SCHEDULE), min_length=1)
-    """The schedule: solver phases run in turn (absent: the default schedule)."""
+    """The schedule: solver phases run in turn (absent: the default schedule, its first Adam
+    steps holding the mask thresholds when any is free)."""
     starts: PositiveInt = 1
     """Multi-start: run the schedule from this many starts (Ray workers), keep the best."""
     start_spread: PositiveFloat = 1.5

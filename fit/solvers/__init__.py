@@ -6,7 +6,7 @@ from .base import AbstractSolver, Options, Outcome, PhaseReport, Result
 from .checkpoint import Checkpoint
 from .problem import LOSSES, Problem, residuals, shape_loss
 from .registry import SOLVERS
-from .schedule import DEFAULT_SCHEDULE, Phase, run_schedule, solve
+from .schedule import DEFAULT_SCHEDULE, Phase, default_schedule, run_schedule, solve
 from .uncertainty import MAX_UNCERTAINTY_PARAMS, uncertainty
 
 __all__ = [
@@ -22,6 +22,7 @@ __all__ = [
     "PhaseReport",
     "Problem",
     "Result",
+    "default_schedule",
     "residuals",
     "run_schedule",
     "shape_loss",

@@ -3,6 +3,7 @@ running them in turn (then the uncertainty at the result)."""
 
 from __future__ import annotations
 
+import fnmatch
 import time
 from collections.abc import Callable
 
@@ -78,7 +79,10 @@ class Phase(BaseModel):
         return super().__getattr__(name)
 
     def describe(self) -> str:
-        return f"{self.solver}, {self.spp} spp, 1/{self.downscale} res"
+        held = getattr(self.options, "hold", ())
+        return f"{self.solver}, {self.spp} spp, 1/{self.downscale} res" + (
+            f", holding {', '.join(held)}" if held else ""
+        )
 
 
 #: The default schedule: Adam with fresh seeds at half resolution and 8 spp is cheap and robust
@@ -101,6 +105,26 @@ DEFAULT_SCHEDULE = (
     Phase(solver="gn", steps=56, spp=16, jacobian_spp=16, refresh=10, average=0.0),
     Phase(solver="gn", steps=12, spp=64, jacobian_spp=32, refresh=6, average=1.0),
 )
+
+
+#: What the default schedule holds through its first Adam steps when any of it is free.
+MASK_THRESHOLDS = "*.mask.threshold"
+
+
+def default_schedule(free: list[str]) -> tuple[Phase, ...]:
+    """`DEFAULT_SCHEDULE` for these free keys: with a mask threshold free, its Adam phase is
+    split, the first 30 steps holding the thresholds (colours first; `AdamOptions.hold`). On the
+    cup, one seed's glaze threshold otherwise walked out of the noise's range in Adam's first
+    20 steps, where no gradient brings it back (README, "The main job")."""
+    if not any(fnmatch.fnmatchcase(k, MASK_THRESHOLDS) for k in free):
+        return DEFAULT_SCHEDULE
+    adam, *rest = DEFAULT_SCHEDULE
+    options = {"solver": adam.solver, "spp": adam.spp, "downscale": adam.downscale, "lr": adam.lr}
+    return (
+        Phase(**options, steps=30, hold=(MASK_THRESHOLDS,)),
+        Phase(**options, steps=adam.steps - 30),
+        *rest,
+    )
 
 
 def solve(

@@ -53,6 +53,26 @@ def test_phases_load_and_default(tmp_path, shared_data):
     assert load_fit_config(ROOT / "configs" / "peer-sphere.toml").phases == list(DEFAULT_SCHEDULE)
 
 
+def test_default_schedule_holds_free_mask_thresholds_first():
+    """With a mask threshold free, the default's Adam steps are split: the first 30 hold every
+    threshold, the rest free them; the steps, samples and later phases stay the default's. A
+    config's own phases are taken as written."""
+    from fit.config.models import FitSettings
+
+    assert FitSettings(free=["glaze.roughness"]).phases == list(DEFAULT_SCHEDULE)
+    phases = FitSettings(free=["glaze.roughness", "stain.mask.threshold"]).phases
+    held, freed, *rest = phases
+    assert held.options.hold == ("*.mask.threshold",) and freed.options.hold == ()
+    assert held.steps + freed.steps == DEFAULT_SCHEDULE[0].steps and held.steps == 30
+    for p in (held, freed):
+        assert (p.solver, p.spp, p.downscale, p.lr) == ("adam", 8, 2, DEFAULT_SCHEDULE[0].lr)
+    assert rest == list(DEFAULT_SCHEDULE[1:])
+    own = FitSettings(
+        free=["lime.mask.threshold"], phases=[{"solver": "adam", "steps": 3, "spp": 2}]
+    )
+    assert len(own.phases) == 1 and own.phases[0].options.hold == ()
+
+
 @pytest.mark.parametrize(
     "edit, message",
     [
