@@ -27,13 +27,15 @@ starts = 1                # multi-start: this many starts on Ray workers, the be
 start_spread = 1.5        # the other starts' spread around this one (unconstrained units)
 starts_spp = 256          # spp of the common loss that picks the best start
 
-[[fit.phases]]            # optional: the default schedule when absent (fit/solvers/schedule.py)
-solver = "adam"           # adam | lm | bfgs, and that solver's options (fit/solvers/<solver>.py)
+[[fit.phases]]            # optional: the default schedule when absent (fit/solvers/schedule.py;
+                          # with a mask threshold free, its first 30 Adam steps hold them)
+solver = "adam"           # adam | gn | lm | bfgs, and its options (fit/solvers/<solver>.py)
 steps = 100
 spp = 8
 downscale = 2             # this phase's resolution: the photos area-averaged by this factor
 lr = 0.1                  # adam: learning rate
 average = 0.0             # adam: fraction of the last iterates averaged (Polyak)
+hold = []                 # adam: keys or patterns held through the phase ("*.mask.threshold")
 [[fit.phases]]
 solver = "lm"
 steps = 5
