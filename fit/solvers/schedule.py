@@ -120,10 +120,10 @@ def default_schedule(free: list[str]) -> tuple[Phase, ...]:
     if not any(fnmatch.fnmatchcase(k, MASK_THRESHOLDS) for k in free):
         return DEFAULT_SCHEDULE
     adam, *rest = DEFAULT_SCHEDULE
-    options = {"solver": adam.solver, "spp": adam.spp, "downscale": adam.downscale, "lr": adam.lr}
+    fields = adam.model_dump()  # its options too (extra fields), validated again below
     return (
-        Phase(**options, steps=30, hold=(MASK_THRESHOLDS,)),
-        Phase(**options, steps=adam.steps - 30),
+        Phase(**{**fields, "steps": 30, "hold": (MASK_THRESHOLDS,)}),
+        Phase(**{**fields, "steps": adam.steps - 30}),
         *rest,
     )
 

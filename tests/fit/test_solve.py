@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 from pathlib import Path
 
 import drjit as dr
@@ -447,6 +448,28 @@ def test_adam_holds_what_it_is_told_to(problem):
     assert np.all(result.u[:4] != u0[:4])
     free = solve("adam", problem, u0, steps=4, spp=4, lr=0.1, seed=0)
     assert free.u[4] != u0[4]  # the same steps without `hold` move it
+    # a held phase stopped after step 2 and resumed from its offered state ends the same
+    from fit.solvers.registry import SOLVERS
+
+    phase = Phase(solver="adam", steps=4, spp=4, lr=0.1, hold=["*.ior"])
+    saved = {}
+
+    def offer(state):
+        if state["step"] == 2:
+            saved.update(
+                step=2,
+                u=np.array(state["u"]),
+                leaves=[np.array(x) for x in state["leaves"]],
+                history=list(state["history"][: state["n_history"]]),
+                tail=[],
+                rejected=state["rejected"],
+            )
+
+    run = functools.partial(SOLVERS["adam"]().run, problem, u0, steps=4, spp=4, seed=0)
+    whole = run(downscale=1, options=phase.options, offer=offer)
+    resumed = run(downscale=1, options=phase.options, resume=saved)
+    np.testing.assert_allclose(resumed.u, whole.u, rtol=1e-5, atol=1e-6)
+    assert resumed.u[4] == u0[4]
     with pytest.raises(InputError, match=r"'clay\.\*' matches no free parameter.*glaze\.ior"):
         solve("adam", problem, u0, steps=1, spp=4, hold=["glaze.ior", "clay.*"])
 
