@@ -89,6 +89,11 @@ def check_output(
                 f"{option} {path}: is an input of this command ({source}); inputs are never "
                 "overwritten: choose another path"
             )
+    if folder and Path.cwd().resolve().is_relative_to(resolved):
+        raise InputError(
+            f"{option} {path}: is the current folder or holds it (it would be replaced whole); "
+            "give a new folder's name"
+        )
     if path.exists() or path.is_symlink():
         if folder and not path.is_dir():
             raise InputError(f"{option} {path}: is a file; give a folder")

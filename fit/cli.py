@@ -417,6 +417,11 @@ def synth(
                 f"--out {out}: is a folder but not a capture (no capture.toml); --force replaces "
                 "only a capture folder: choose another path"
             )
+        if out.is_dir() and (out / "capture.toml").is_file() and not _synthetic(out):
+            raise InputError(
+                f"--out {out}: holds photographs (its capture.toml has no [truth]); --force "
+                "replaces only a capture made by synth: choose another path"
+            )
     except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)
@@ -440,6 +445,17 @@ def synth(
         except (InputError, FileExistsError) as err:
             raise _fail(err, 2) from None
     console.print(f"wrote {path}", markup=False, highlight=False)
+
+
+def _synthetic(folder: Path) -> bool:
+    """Whether a capture folder was made by `synth` (its manifest holds the [truth]); an
+    unreadable manifest counts as not."""
+    import tomllib
+
+    try:
+        return "truth" in tomllib.loads((folder / "capture.toml").read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return False
 
 
 @app.command()

@@ -6,13 +6,11 @@ shared baking, `mapping` the fitted lobe maps. Import after the Mitsuba variant 
 from __future__ import annotations
 
 import contextlib
-import shutil
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from captures.files import atomic_path
 from captures.files import check_output as check_path
-from captures.files import replace_folder
 
 from ..errors import ConfigError
 from ..material import Preset, load_preset
@@ -22,17 +20,30 @@ from .bake import Progress
 TARGETS = ("mitsuba", "materialx", "usd")
 #: Texels per side of baked images by default (the cup's finest fbm octave: ~5 texels a cell).
 BAKE_SIZE = 1024
+#: The main file each target writes: a folder holding one of them is an earlier export, the only
+#: kind of non-empty folder `--force` replaces.
+MAIN_FILES = ("material.xml", "material.mtlx", "material.usda")
 
 
 def check_output(out: Path, force: bool, inputs=()) -> None:
     """Refuse an output that is a file, one of the export's `inputs` (the preset, its textures)
-    or a folder holding one, a place that cannot be written, or an existing non-empty folder
-    without `force`."""
+    or a folder holding one, a place that cannot be written, an existing non-empty folder
+    without `force`, and with `force` one that holds no earlier export (a user's own folder)."""
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{out}: is a file; give --out a folder (new or empty)")
     check_path(out, "--out", force=True, inputs=inputs, folder=True)
-    if out.is_dir() and any(out.iterdir()) and not force:
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    if not force:
         raise ConfigError(f"{out}: exists and is not empty; pass --force to replace it")
+    if not any((out / name).is_file() for name in MAIN_FILES):
+        names = sorted(p.name for p in out.iterdir())
+        shown = ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
+        raise ConfigError(
+            f"--out {out}: is not a layerfit export (it holds {shown}, no "
+            f"{' / '.join(MAIN_FILES)}); --force replaces only an earlier export: choose "
+            "another path"
+        )
 
 
 def inputs_of(preset: Preset) -> list[Path]:
@@ -46,14 +57,8 @@ def output_folder(out: Path, force: bool, inputs=()) -> Iterator[Path]:
     """A temporary folder to write into that becomes `out` on success (the previous `out`
     removed only then); on any error nothing is left behind and `out` is as it was."""
     check_output(out, force, inputs)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    new = Path(tempfile.mkdtemp(prefix=f".{out.name}-", suffix=".new", dir=out.parent))
-    try:
+    with atomic_path(out, folder=True, replace=True) as new:
         yield new
-    except BaseException:
-        shutil.rmtree(new, ignore_errors=True)
-        raise
-    replace_folder(out, new)
 
 
 def export(
@@ -94,4 +99,12 @@ def export(
     return out / name
 
 
-__all__ = ["BAKE_SIZE", "TARGETS", "check_output", "export", "inputs_of", "output_folder"]
+__all__ = [
+    "BAKE_SIZE",
+    "MAIN_FILES",
+    "TARGETS",
+    "check_output",
+    "export",
+    "inputs_of",
+    "output_folder",
+]

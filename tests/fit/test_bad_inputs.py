@@ -45,6 +45,7 @@ def base(tmp_path_factory) -> Path:
     [truth]), a fit config, a texture, an env map, a mesh, and a small DiLiGenT-style folder."""
     from fit.commands.synth import synthesize
     from fit.config import load_render_config
+    from fit.material import save_preset
 
     root = tmp_path_factory.mktemp("base")
     text = (ROOT / "configs" / "glazed-sphere.toml").read_text()
@@ -52,6 +53,7 @@ def base(tmp_path_factory) -> Path:
     (root / "render.toml").write_text(text.replace("spp = 256", "spp = 2"))
     cfg = load_render_config(root / "render.toml")
     synthesize(cfg.scene, cfg.material, root / "cap", spp=2)
+    save_preset(cfg.material, root / "preset.toml")
     (root / "fit.toml").write_text(FIT)
     write_image(root / "tex.png", np.full((4, 4, 3), 0.5, np.float32))
     write_image(root / "sky.exr", np.full((4, 8, 3), 0.1, np.float32))
@@ -186,6 +188,15 @@ def write(rel: str, data: bytes | str | None = None, folder: bool = False):
             path.write_text(data or "")
 
     return setup
+
+
+def photographs(d: Path) -> None:
+    """A copy of the capture as a user's photographs would be: no [truth] in its manifest."""
+    shutil.copytree(d / "cap", d / "photos")
+    manifest = d / "photos" / "capture.toml"
+    text = manifest.read_text()
+    assert "[truth]" in text
+    manifest.write_text(text[: text.index("[truth]")])
 
 
 def out(rel: str):
@@ -475,6 +486,20 @@ CASES: list[Case] = [
         ("--out", "is a file"),
     ),
     ("synth-out-holds-config", synth_args("--out", lambda d: d, "--force"), ("--out", "input")),
+    (
+        "synth-force-photographs",  # a capture without [truth] holds a user's photographs
+        synth_args("--out", out("photos"), "--force", setup=photographs),
+        ("--out", "photos", "[truth]", "choose another path"),
+    ),
+    (
+        "export-force-user-folder",
+        lambda d: (
+            (d / "mine").mkdir(),
+            (d / "mine" / "thesis.txt").write_text("x"),
+            ["export", d / "preset.toml", "--to", "usd", "--out", d / "mine", "--force"],
+        )[-1],
+        ("--out", "not a layerfit export", "thesis.txt", "choose another path"),
+    ),
     (
         "synth-out-parent-file",
         synth_args("--out", out("f/c"), setup=write("f", "x")),

@@ -3,6 +3,7 @@ target's own library; the fitted lobe maps; bad input leaves nothing behind."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import tomllib
@@ -296,6 +297,31 @@ def test_cli_exports_and_refuses_to_overwrite(tmp_path):
     assert leftovers(tmp_path) == []
 
 
+def test_cli_force_replaces_only_an_export(tmp_path, monkeypatch):
+    """`--force` replaces an earlier export, never a user's own folder nor the current folder
+    (refused before any work, nothing left behind); a new export folder is readable by others
+    as the umask allows (not mkdtemp's 0700)."""
+    preset = sphere_preset(tmp_path)
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "thesis.txt").write_text("draft")
+    refused = cli("export", preset, "--to", "usd", "--out", mine, "--force")
+    assert refused.exit_code == 2 and "not a layerfit export" in refused.output
+    assert [p.name for p in mine.iterdir()] == ["thesis.txt"]
+    monkeypatch.chdir(mine)
+    here = cli("export", preset, "--to", "usd", "--out", ".", "--force")
+    assert here.exit_code == 2 and "current folder" in here.output, here.output
+    assert [p.name for p in mine.iterdir()] == ["thesis.txt"] and leftovers(tmp_path) == []
+    monkeypatch.chdir(tmp_path)
+    umask = os.umask(0o022)
+    try:
+        made = cli("export", preset, "--to", "mitsuba", "--out", tmp_path / "new")
+    finally:
+        os.umask(umask)
+    assert made.exit_code == 0, made.output
+    assert (tmp_path / "new").stat().st_mode & 0o777 == 0o755
+
+
 def test_cli_never_replaces_the_folder_holding_its_input(tmp_path):
     """`--out` the preset's own folder, even with --force: refused before any work (replacing it
     would delete the preset and its run folder)."""
@@ -336,7 +362,7 @@ def test_an_interrupted_export_leaves_nothing(tmp_path):
     preset = cup_preset(tmp_path)
     out = tmp_path / "out"
     out.mkdir()
-    (out / "keep.txt").write_text("old export")
+    (out / "material.usda").write_text("an earlier export")
 
     def interrupt(done, total):
         if done == 2:
@@ -344,7 +370,7 @@ def test_an_interrupted_export_leaves_nothing(tmp_path):
 
     with pytest.raises(KeyboardInterrupt):
         export(preset, "materialx", out, force=True, size=16, progress=interrupt)
-    assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
+    assert sorted(p.name for p in out.iterdir()) == ["material.usda"]
     assert leftovers(tmp_path) == []
 
 
