@@ -91,6 +91,16 @@ class Checkpoint:
                 f"{str(err).splitlines()[0] if str(err) else 'empty or cut short'}); run without "
                 "--resume (and with --force) to start again"
             ) from None
+        bad = [
+            key
+            for key in ("u", "u_phase")
+            if key in state and not np.all(np.isfinite(np.asarray(state[key], np.float64)))
+        ]
+        if bad:
+            raise InputError(
+                f"{self.path}: its {' and '.join(bad)} hold non-finite values (not a state a fit "
+                "saves); run without --resume (and with --force) to start again"
+            )
         return state
 
     def remove(self) -> None:

@@ -199,6 +199,15 @@ def photographs(d: Path) -> None:
     manifest.write_text(text[: text.index("[truth]")])
 
 
+def nan_checkpoint(d: Path) -> None:
+    """A readable checkpoint whose vector is NaN (no fit saves one)."""
+    (d / "run").mkdir()
+    meta = np.array(json.dumps({"phase": 0, "step": 1, "history": [0.1]}))
+    nan = np.full(1, np.nan, np.float32)
+    with open(d / "run" / "checkpoint.npz", "wb") as f:
+        np.savez(f, meta=meta, u=nan, u_phase=nan)
+
+
 def out(rel: str):
     return lambda d: d / rel
 
@@ -937,6 +946,11 @@ CASES: list[Case] = [
             setup=lambda d: ((d / "run").mkdir(), (d / "run" / "checkpoint.npz").write_bytes(b"")),
         ),
         ("checkpoint.npz", "unreadable"),
+    ),
+    (
+        "fit-resume-nan-checkpoint",
+        fit_args("--out", out("run"), "--resume", setup=nan_checkpoint),
+        ("checkpoint.npz", "non-finite", "without --resume"),
     ),
     ("fit-holdout-all", fit_args("--out", out("run"), "--holdout", "1"), ("holdout",)),
     ("fit-holdout-neg", fit_args("--out", out("run"), "--holdout", "-1"), ("--holdout",)),
