@@ -499,8 +499,6 @@ def inspect(
     _start(variant)
     from .commands.inspect import contact_sheet, silhouettes, summary
 
-    for warning in cap.warnings:
-        _say("warning:", "yellow", warning)
     with _interruptible(lambda: "no sheet written"):
         coverage = silhouettes(cap) if silhouette else None
         rows = summary(cap, coverage)
@@ -802,6 +800,13 @@ def export(
     console.print(f"wrote {path}", highlight=False, markup=False)
 
 
+class _Plain(logging.Formatter):
+    """Log records as the CLI's own lines: `warning: the message` (each said once)."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return f"{record.levelname.lower()}: {record.getMessage()}"
+
+
 def _terminate(signum, frame) -> None:
     """SIGTERM stops like Ctrl-C: partial outputs are removed (a fit keeps its checkpoint)."""
     raise KeyboardInterrupt
@@ -811,7 +816,8 @@ def main(argv: list[str] | None = None) -> None:
     """The `layerfit` entry point: every failure is one line on stderr and an exit status (2 for
     bad input or usage, 130 when interrupted, 1 otherwise); `LAYERFIT_DEBUG=1` shows
     tracebacks of unexpected errors."""
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    logging.getLogger().handlers[0].setFormatter(_Plain())
     previous = None
     with contextlib.suppress(ValueError):  # only the main thread may set handlers
         previous = signal.signal(signal.SIGTERM, _terminate)

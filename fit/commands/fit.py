@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import difflib
 import json
+import logging
 import math
 import signal
 import threading
@@ -34,11 +36,13 @@ from captures.capture import Capture
 from captures.images import TEXTURE_SUFFIXES, write_image
 
 from ..config import FitConfig
-from ..material import Free, provenance, resolve, save_preset, start_values, to_physical
+from ..material import Free, parse_key, provenance, resolve, save_preset, start_values, to_physical
 from ..material.preset import software_versions
 from ..output import ViewPanel, write_report, write_text
 from ..solvers import Checkpoint, Problem, Result, run_schedule
 from ..solvers.gn import AUTO_SPLIT
+
+log = logging.getLogger(__name__)
 
 #: Samples per pixel of the renders in the report (and the per-view residuals).
 REPORT_SPP = 64
@@ -104,8 +108,25 @@ def check_output(out: Path, cfg: FitConfig, resume: bool, force: bool) -> None:
         ) from None
 
 
-def check_truth(capture: Capture, free: list[Free], path) -> None:
-    """A `[truth]` value of the wrong size fails before any work (not after the fit)."""
+def check_truth(capture: Capture, free: list[Free], path, material=None) -> None:
+    """A `[truth]` value of the wrong size fails before any work (not after the fit); a key
+    that names no parameter of the fitted `material` is a warning (it is not scored), with the
+    closest key where one is near (a typo)."""
+    if material is not None:
+        known = sorted(material.params)
+        unknown = [k for k in capture.truth if k not in known and not parse_key(k).emitter]
+        others = []
+        for name in unknown:
+            near = difflib.get_close_matches(name, known, n=1, cutoff=0.8)
+            if near:
+                log.warning(f"{path}: truth.{name}: not scored (did you mean {near[0]}?)")
+            else:
+                others.append(name)
+        if others:
+            log.warning(
+                f"{path}: truth: {', '.join(others)}: not scored (the fitted material has no "
+                "such parameter)"
+            )
     for f in free:
         value = capture.truth.get(f.key)
         if value is not None and np.size(value) != f.size:
@@ -157,7 +178,7 @@ def prepare(cfg: FitConfig, holdout: int | None = None) -> Prepared:
         free = resolve(cfg.material, cfg.free)
     except KeyError as err:  # a free key: name the config it came from
         raise InputError(f"{cfg.path}: fit.free: {err.args[0]}") from None
-    check_truth(capture, free, capture.path or cfg.capture)
+    check_truth(capture, free, capture.path or cfg.capture, cfg.material)
     problem = Problem(fitted, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)
     for k, phase in enumerate(cfg.phases):  # fail before any work, naming the phase
         try:

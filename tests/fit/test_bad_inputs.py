@@ -1211,3 +1211,50 @@ def test_ctrl_c_in_fit_is_one_line_exit_130(base, tmp_path, capsys, monkeypatch)
         "interrupted: nothing to resume (stopped before the first checkpoint)"
     ]
     assert not [p for p in work.rglob("*") if ".partial" in p.name]
+
+
+# Warnings -----------------------------------------------------------------------------------------
+
+
+def test_a_truth_typo_is_a_warning_not_silence(base, tmp_path, caplog):
+    """A `[truth]` key that names no parameter of the fitted material is not scored: a warning
+    names it (with the key it was probably meant to be), before any render."""
+    import logging
+
+    from fit.commands.fit import prepare
+    from fit.config import load_fit_config
+
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    edit(work / "cap" / "capture.toml", '"glaze.roughness" =', '"glaze.roughnes" =')
+    with caplog.at_level(logging.WARNING):
+        prepare(load_fit_config(work / "fit.toml"))
+    (message,) = [r.getMessage() for r in caplog.records if "truth" in r.getMessage()]
+    assert "truth.glaze.roughnes" in message and "did you mean glaze.roughness?" in message
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):  # the untouched capture: no warning
+        prepare(load_fit_config(base / "fit.toml"))
+    assert not [r for r in caplog.records if "truth" in r.getMessage()]
+
+
+def test_a_capture_warning_is_said_once(base, tmp_path, capfd):
+    """A view's warning (here a NaN pixel) is one `warning:` line on stderr, not two."""
+    import subprocess
+    import sys
+
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    image = np.full((12, 16, 3), 0.2, np.float32)
+    image[3, 4] = np.nan
+    write_image(work / "cap" / "view_00.exr", image)
+    code = (
+        "import sys; from fit.cli import main; "
+        f"main(['inspect', {str(work / 'cap')!r}, '--no-silhouette', '--sheet', "
+        f"{str(work / 's.png')!r}])"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], check=False, capture_output=True, text=True
+    )
+    assert result.returncode == 0, result.stderr
+    lines = [line for line in result.stderr.splitlines() if "NaN" in line]
+    assert len(lines) == 1 and lines[0].startswith("warning: "), result.stderr
