@@ -58,6 +58,9 @@ from .weights import downscale, downscaled_size, validity
 
 log = logging.getLogger(__name__)
 
+#: The fewest pixels a side of a view once area-averaged (a fit's phases check the same).
+MIN_SIDE = 4
+
 #: The largest exposure offset a view may declare, in EV (2^40: far beyond any camera).
 MAX_EV = 40.0
 
@@ -93,6 +96,18 @@ class Capture:
         v = self.views[view]
         lights = v.lights if v.lights is not None else self.scene.lights
         return replace(self.scene, cameras=(v.camera,), lights=lights)
+
+    def check_factor(self, factor: int, name: str) -> None:
+        """Refuse an area-averaging `factor` (named `name` in the message: the field or option
+        that gave it) that leaves a view under `MIN_SIDE` pixels a side."""
+        for view in self.views:
+            w, h = downscaled_size(view.camera.width, view.camera.height, factor)
+            if min(w, h) < MIN_SIDE:
+                raise CaptureError(
+                    f"{name} = {factor} leaves view {view.name} {w}x{h} (from "
+                    f"{view.camera.width}x{view.camera.height}): at least {MIN_SIDE} pixels a "
+                    "side; give a smaller factor"
+                )
 
     def downscaled(self, factor: int) -> Capture:
         """A copy area-averaged by an integer `factor`, any image size (weights become each output
@@ -277,9 +292,9 @@ def load_capture(path: str | Path) -> Capture:
             )
     for message in warnings:
         log.warning(message)
-    return Capture(scene, views, dict(manifest.truth), path, warnings).downscaled(
-        settings.downscale
-    )
+    capture = Capture(scene, views, dict(manifest.truth), path, warnings)
+    capture.check_factor(settings.downscale, f"{path}: capture.downscale")
+    return capture.downscaled(settings.downscale)
 
 
 def _scene_files(scene: Scene) -> list[tuple[str, Path]]:

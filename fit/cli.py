@@ -480,12 +480,20 @@ def inspect(
     from rich.table import Table as RichTable
 
     from captures import open_capture
+    from captures.capture import MIN_SIDE
     from captures.files import check_output
 
     name = capture.stem if capture.name != "scene.json" else capture.parent.name
     sheet = sheet or Path("out") / f"inspect-{name}.png"
     try:
         cap = open_capture(capture, downscale)
+        small = min(cap.views, key=lambda v: min(v.camera.width, v.camera.height))
+        if min(small.camera.width, small.camera.height) < MIN_SIDE:
+            raise InputError(
+                f"--downscale {downscale}: leaves view {small.name} "
+                f"{small.camera.width}x{small.camera.height}: at least {MIN_SIDE} pixels a "
+                "side; give a smaller factor"
+            )
         folder = Path(cap.path or capture)
         folder = folder if folder.is_dir() else folder.parent
         if sheet.resolve().is_relative_to(folder.resolve()):

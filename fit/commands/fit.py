@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from captures import CaptureError, InputError, open_capture
-from captures.capture import Capture
+from captures.capture import MIN_SIDE, Capture
 from captures.images import TEXTURE_SUFFIXES, write_image
 
 from ..config import FitConfig
@@ -149,7 +149,7 @@ class Prepared:
 
 
 #: The fewest pixels a side of a view at any phase's resolution.
-MIN_PIXELS = 4
+MIN_PIXELS = MIN_SIDE
 #: A phase's options that set a render's samples per pixel, besides its `spp`.
 SPP_OPTIONS = ("primal_spp", "jacobian_spp")
 

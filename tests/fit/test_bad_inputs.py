@@ -952,6 +952,22 @@ CASES: list[Case] = [
         fit_args("--out", out("run"), "--resume", setup=nan_checkpoint),
         ("checkpoint.npz", "non-finite", "without --resume"),
     ),
+    (
+        "manifest-downscale-huge",
+        fit_args(
+            "--out",
+            out("run"),
+            setup=lambda d: edit(
+                d / "cap" / "capture.toml", "[capture]\n", "[capture]\ndownscale = 1000\n"
+            ),
+        ),
+        ("capture.toml", "capture.downscale = 1000", "smaller factor"),
+    ),
+    (
+        "inspect-downscale-huge",
+        inspect_args(out("cap"), "--downscale", "8", "--sheet", out("s.png")),
+        ("--downscale 8", "4 pixels", "smaller factor"),
+    ),
     ("fit-holdout-all", fit_args("--out", out("run"), "--holdout", "1"), ("holdout",)),
     ("fit-holdout-neg", fit_args("--out", out("run"), "--holdout", "-1"), ("--holdout",)),
     ("fit-out-file", fit_args("--out", out("f"), setup=write("f", "x")), ("--out", "is a file")),
