@@ -225,9 +225,15 @@ def test_manifest_loads(tmp_path):
 
 
 def test_manifest_downscale_adjusts_cameras(tmp_path):
-    path = make_capture(tmp_path, capture={"encoding": "linear", "downscale": 2})
+    views = [{"image": "v0.exr", "camera": dict(CAMERA, width=16, height=12)}]
+    capture = {"encoding": "linear", "downscale": 2}
+    path = make_capture(tmp_path, views=views, capture=capture, size=(16, 12))
     view = load_capture(path).views[0]
-    assert view.image.shape == (3, 4, 3) and (view.camera.width, view.camera.height) == (4, 3)
+    assert view.image.shape == (6, 8, 3) and (view.camera.width, view.camera.height) == (8, 6)
+    # a factor that leaves under 4 pixels a side: refused, naming the manifest's field
+    path = make_capture(tmp_path, views=views, capture=capture | {"downscale": 4}, size=(16, 12))
+    with pytest.raises(CaptureError, match=r"capture.toml: capture.downscale = 4 leaves .* 4x3"):
+        load_capture(path)
 
 
 def bad(tmp_path, **kw):
