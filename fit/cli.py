@@ -22,7 +22,7 @@ from rich.text import Text
 
 from captures.errors import InputError
 
-from .variant import BackendError, select_variant
+from .variant import BackendError, VariantError, select_variant
 
 # rich_markup_mode=None: help texts are plain (a "[truth]" in them is shown, not read as markup)
 app = typer.Typer(
@@ -111,6 +111,8 @@ def _start(variant: str | None) -> None:
     """Select the variant and register the plugins, or stop with one line."""
     try:
         select_variant(variant)
+    except VariantError as err:
+        raise _fail(err, 2) from None
     except BackendError as err:
         raise _fail(err, 1) from None
     import materials
@@ -556,6 +558,9 @@ def fit(
     from .config import load_fit_config
 
     out = out or Path("out") / config.stem
+    first_new = out  # the outermost folder this command would create
+    while not first_new.parent.exists() and first_new.parent != first_new:
+        first_new = first_new.parent
     created = not out.exists()
     try:
         cfg = load_fit_config(config)
@@ -567,11 +572,19 @@ def fit(
     except InputError as err:
         raise _fail(err, 2) from None
 
-    def forget_out() -> None:  # a failed start leaves no empty run folder
-        if created and out.is_dir() and not any(out.iterdir()):
-            out.rmdir()
+    def forget_out() -> None:  # a failed start leaves no empty run folder (nor its parents)
+        folder = out
+        while created and folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+            if folder == first_new:
+                break
+            folder = folder.parent
 
-    _start(variant)
+    try:
+        _start(variant)
+    except typer.Exit:
+        forget_out()
+        raise
     from .batch import Cancelled
     from .commands.fit import Interrupted, prepare, run_fit
 

@@ -33,8 +33,17 @@ _SEARCH_DIRS = (
 _VERSION = re.compile(r"libLLVM(?:-(\d+)(?:\.\d+)*\.so|\.so\.(\d+))")
 
 
+#: The variants layerfit runs: its plugins are RGB and its fits differentiate the renders.
+SUPPORTED = ("llvm_ad_rgb", "cuda_ad_rgb")
+
+
 class BackendError(RuntimeError):
     """The requested Mitsuba variant cannot run on this machine; the message says what to do."""
+
+
+class VariantError(BackendError):
+    """The variant asked for is not one layerfit runs, or needs a device this machine lacks
+    (bad input: the CLI exits 2)."""
 
 
 def llvm_version(path: str) -> int | None:
@@ -96,15 +105,26 @@ def ensure_llvm() -> str:
 def select_variant(variant: str | None = None) -> str:
     """Set the Mitsuba variant (argument, else ``LAYERFIT_VARIANT``, else ``llvm_ad_rgb``)."""
     variant = variant or os.environ.get("LAYERFIT_VARIANT") or DEFAULT_VARIANT
+    if variant not in SUPPORTED:
+        raise VariantError(
+            f"--variant / LAYERFIT_VARIANT {variant!r}: not a variant layerfit runs; choose "
+            f"{' (CPU) or '.join(SUPPORTED)} (GPU)"
+        )
     if variant.startswith("llvm"):
         path = ensure_llvm()
         log.debug("Dr.Jit uses %s", path)
+    import drjit as dr
     import mitsuba as mi
 
+    if variant.startswith("cuda") and not dr.has_backend(dr.JitBackend.CUDA):
+        raise VariantError(
+            f"--variant / LAYERFIT_VARIANT {variant!r}: no usable CUDA device or driver on this "
+            f"machine; use {DEFAULT_VARIANT} (CPU)"
+        )
     if variant not in mi.variants():
         raise BackendError(
-            f"Mitsuba variant {variant!r} is not available; "
-            f"choose one of {', '.join(mi.variants())}."
+            f"Mitsuba variant {variant!r} is not built into this Mitsuba; "
+            f"choose one of {', '.join(v for v in SUPPORTED if v in mi.variants())}."
         )
     mi.set_variant(variant)
     return variant

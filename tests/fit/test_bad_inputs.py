@@ -968,6 +968,16 @@ CASES: list[Case] = [
         inspect_args(out("cap"), "--downscale", "8", "--sheet", out("s.png")),
         ("--downscale 8", "4 pixels", "smaller factor"),
     ),
+    (
+        "fit-variant-unknown",  # refused before the run folder (or its parent) is made
+        fit_args("--out", out("new/run"), "--variant", "bogus_rgb"),
+        ("--variant", "bogus_rgb", "llvm_ad_rgb"),
+    ),
+    (
+        "fit-variant-scalar",
+        fit_args("--out", out("run"), "--variant", "scalar_rgb"),
+        ("--variant", "scalar_rgb", "llvm_ad_rgb"),
+    ),
     ("fit-holdout-all", fit_args("--out", out("run"), "--holdout", "1"), ("holdout",)),
     ("fit-holdout-neg", fit_args("--out", out("run"), "--holdout", "-1"), ("--holdout",)),
     ("fit-out-file", fit_args("--out", out("f"), setup=write("f", "x")), ("--out", "is a file")),
@@ -1274,3 +1284,20 @@ def test_a_capture_warning_is_said_once(base, tmp_path, capfd):
     assert result.returncode == 0, result.stderr
     lines = [line for line in result.stderr.splitlines() if "NaN" in line]
     assert len(lines) == 1 and lines[0].startswith("warning: "), result.stderr
+
+
+def test_cuda_without_a_device_is_one_line(base, tmp_path, capsys):
+    """`--variant cuda_ad_rgb` where there is no CUDA device: one line saying so, exit 2,
+    nothing made (was an internal error from Dr.Jit at the first render)."""
+    import drjit as dr
+
+    if dr.has_backend(dr.JitBackend.CUDA):
+        pytest.skip("this machine has a CUDA device")
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    before = snapshot(work)
+    args = ["fit", work / "fit.toml", "--out", work / "a" / "run", "--variant", "cuda_ad_rgb"]
+    code, stdout, stderr = run(args, capsys)
+    assert code == 2 and not stdout and "no usable CUDA device" in stderr, stderr
+    assert stderr.count("\n") == 1
+    assert snapshot(work) == before
