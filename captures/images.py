@@ -172,6 +172,12 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
                 f"{path}: {int(saturated.sum())} pixels at the half-float maximum {HALF_MAX:g} "
                 "are treated as saturated"
             )
+    if encoding == "srgb" and not integer:
+        raise CaptureError(
+            f"{path}: holds floating-point (linear) values but the capture's encoding is "
+            '"srgb"; declare encoding = "linear" for float images (EXR, HDR), or give 8/16-bit '
+            "sRGB files"
+        )
     if encoding == "srgb":
         pixels = srgb_decode(pixels)
     elif spec.format.basetype == oiio.UINT8:

@@ -243,6 +243,12 @@ def bad(tmp_path, **kw):
     return str(err.value)
 
 
+def test_float_image_declared_srgb(tmp_path):
+    """An EXR's floats are linear: decoding them as sRGB would square the gamma; refused."""
+    message = bad(tmp_path, capture={"encoding": "srgb"})
+    assert "views[0].image" in message and 'encoding = "linear"' in message
+
+
 def test_missing_file(tmp_path):
     assert "views[0].image: 'none.exr' does not exist" in bad(
         tmp_path, views=[{"image": "none.exr", "camera": CAMERA}]

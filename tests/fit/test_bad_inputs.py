@@ -978,6 +978,11 @@ CASES: list[Case] = [
         fit_args("--out", out("run"), "--variant", "scalar_rgb"),
         ("--variant", "scalar_rgb", "llvm_ad_rgb"),
     ),
+    (
+        "manifest-float-image-srgb",
+        manifest('encoding = "linear"', 'encoding = "srgb"'),
+        ("capture.toml", "views[0].image", 'encoding = "linear"'),
+    ),
     ("fit-holdout-all", fit_args("--out", out("run"), "--holdout", "1"), ("holdout",)),
     ("fit-holdout-neg", fit_args("--out", out("run"), "--holdout", "-1"), ("--holdout",)),
     ("fit-out-file", fit_args("--out", out("f"), setup=write("f", "x")), ("--out", "is a file")),
