@@ -586,10 +586,12 @@ def fit(
         forget_out()
         raise
     from .batch import Cancelled
-    from .commands.fit import Interrupted, prepare, run_fit
+    from .commands.fit import Interrupted, check_resume, prepare, run_fit
 
     try:
         prepared = prepare(cfg, holdout)
+        if resume:  # before any progress bar: a checkpoint of another fit is one line
+            check_resume(prepared, cfg, out)
     except InputError as err:
         forget_out()
         raise _fail(err, 2) from None

@@ -41,6 +41,7 @@ from ..material.preset import software_versions
 from ..output import ViewPanel, write_report, write_text
 from ..solvers import Checkpoint, Problem, Result, run_schedule
 from ..solvers.gn import AUTO_SPLIT
+from ..solvers.schedule import check_saved
 
 log = logging.getLogger(__name__)
 
@@ -134,6 +135,15 @@ def check_truth(capture: Capture, free: list[Free], path, material=None) -> None
                 f"{path}: truth.{f.key}: has {np.size(value)} value(s) but the parameter has "
                 f"{f.size}; give {'one number' if f.size == 1 else f'{f.size} numbers'}"
             )
+
+
+def check_resume(prepared: Prepared, cfg: FitConfig, out: Path) -> None:
+    """Refuse, before any work, a checkpoint in `out` that another fit saved."""
+    checkpoint = Checkpoint(out / "checkpoint.npz")
+    saved = checkpoint.load()
+    if saved is not None:
+        u = prepared.problem.unconstrained(prepared.start)
+        check_saved(saved, u, len(cfg.phases), checkpoint.path)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -154,6 +154,15 @@ def solve(
     )
 
 
+def check_saved(saved: dict, u, n_phases: int, path) -> None:
+    """Refuse a checkpoint saved by another fit (its vector's size or its phase)."""
+    if np.shape(saved.get("u_phase")) != np.shape(u) or int(saved.get("phase", 0)) > n_phases:
+        raise InputError(
+            f"{path}: was saved by a different fit (other free parameters, views or "
+            "phases); run without --resume (and --force) to start again"
+        )
+
+
 def run_schedule(
     problem: Problem,
     start: dict,
@@ -176,14 +185,8 @@ def run_schedule(
     history, steps, ends, reports = [], 0, [], []
     saved = checkpoint.load() if checkpoint is not None and resume else None
     first = 0
-    if saved is not None and (
-        np.shape(saved["u_phase"]) != np.shape(u) or int(saved["phase"]) > len(phases)
-    ):
-        raise InputError(
-            f"{checkpoint.path}: was saved by a different fit (other free parameters, views or "
-            "phases); run without --resume (and --force) to start again"
-        )
     if saved is not None:
+        check_saved(saved, u, len(phases), checkpoint.path)
         first, u = int(saved["phase"]), np.asarray(saved["u_phase"], np.float32)
         history, ends = list(saved["history_before"]), list(saved["ends"])
         reports = [PhaseReport(**{**r, "outcome": Outcome(r["outcome"])}) for r in saved["reports"]]

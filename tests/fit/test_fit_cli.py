@@ -226,6 +226,8 @@ def test_resume_refuses_a_checkpoint_of_another_fit(tmp_path):
     out = run_cli("fit", tmp_path / "fit.toml", "--out", run, "--resume", timeout=300)
     assert out.returncode == 2, out.stderr
     assert "saved by a different fit" in out.stderr and "Traceback" not in out.stderr
+    lines = [line for line in out.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:"), out.stderr  # no progress bars
 
 
 def test_unknown_free_key_is_one_line_and_leaves_no_folder(tmp_path):
