@@ -215,7 +215,14 @@ def load_capture(path: str | Path) -> Capture:
     path = Path(path)
     if path.is_dir():
         path = path / "capture.toml"
-    manifest = parse_model(Manifest, load_toml(path, "capture manifest"), path)
+    doc = load_toml(path, "capture manifest")
+    if "fit" in doc or "material" in doc:
+        kind = "a fit config" if "fit" in doc else "a render config"
+        raise CaptureError(
+            f"{path}: is {kind}, not a capture manifest; give a capture (a folder holding "
+            "capture.toml with [[views]], a peer scene.json or a DiLiGenT folder)"
+        )
+    manifest = parse_model(Manifest, doc, path)
     settings = manifest.capture
     first = {}
     for i, spec in enumerate(manifest.views):
@@ -255,6 +262,12 @@ def load_capture(path: str | Path) -> Capture:
         image, weight = validity(image / gain, saturated, mask, settings.dilate)
         camera = {"width": w, "height": h, **spec.camera}
         sizes = (camera["width"], camera["height"])
+        for name, size in zip(("width", "height"), sizes, strict=True):
+            if type(size) is int and size < 1:
+                raise CaptureError(
+                    f"{path}: views[{i}].camera.{name} = {size}: must be a positive number of "
+                    f"pixels; give the image's ({w}x{h}) or drop width and height"
+                )
         if all(type(x) is int for x in sizes) and sizes != (w, h):
             raise CaptureError(
                 f"{path}: views[{i}].camera is {camera['width']}x{camera['height']} but "

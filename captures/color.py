@@ -18,7 +18,10 @@ def planckian_xy(kelvin: float) -> tuple[float, float]:
     """CIE 1931 chromaticity of a black body (Kang et al. 2002 cubic fits, 1667 K to 25000 K)."""
     t = float(kelvin)
     if not 1667.0 <= t <= 25000.0:
-        raise ValueError(f"= {kelvin:g} K is outside [1667, 25000] K (black-body fit's range)")
+        raise ValueError(
+            f"= {kelvin:g} K is outside [1667, 25000] K (black-body fit's range); give a "
+            "temperature in it, or a color"
+        )
     if t <= 4000.0:
         x = -0.2661239e9 / t**3 - 0.2343589e6 / t**2 + 0.8776956e3 / t + 0.179910
     else:

@@ -264,7 +264,8 @@ def check_obj_has_uvs(path: str | Path) -> None:
             if all(len(c.split("/")) > 1 and c.split("/")[1] != "" for c in corners):
                 faces_with_vt += 1
     if faces == 0:
-        raise CaptureError(f"{path}: the OBJ has no faces; give a triangle mesh with UVs")
+        what = "is not an OBJ text file" if not positions else "the OBJ has no faces"
+        raise CaptureError(f"{path}: {what}; give a triangle mesh with UVs (OBJ text)")
     p, t = np.asarray(positions, np.float64), np.asarray(triangles)
     area = np.linalg.norm(np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]]), axis=1)
     extent = float(np.ptp(p[t.ravel()], axis=0).max())

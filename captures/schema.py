@@ -141,7 +141,10 @@ class ObjSpec(StrictModel):
     @classmethod
     def _is_obj(cls, path: Path) -> Path:
         if path.suffix.lower() != ".obj":
-            raise ValueError(f"'{path.name}' is not an OBJ file; only OBJ meshes are read")
+            raise ValueError(
+                f"'{path.name}' is not an OBJ file; only OBJ meshes are read: convert it (e.g. "
+                "Blender or meshio: meshio convert mesh.ply mesh.obj) and keep its UVs"
+            )
         return path
 
     def build(self) -> ObjFile:
@@ -225,8 +228,8 @@ class _Emitter(StrictModel):
 
     color: NonNegativeVec3 | None = None
     """Linear RGB tint of a number or power (default white); or give temperature."""
-    temperature: PositiveFloat | None = None
-    """Colour temperature in kelvin (luminance 1); or give color."""
+    temperature: float | None = None
+    """Colour temperature in kelvin, 1667 to 25000 (luminance 1); or give color."""
 
     amount: ClassVar[str]  # the field holding the amount
 
@@ -234,7 +237,7 @@ class _Emitter(StrictModel):
     @classmethod
     def _black_body(cls, kelvin: float | None):
         try:
-            blackbody_rgb(kelvin or 6500.0)  # None only from Python callers
+            blackbody_rgb(6500.0 if kelvin is None else kelvin)  # None only from Python callers
         except ValueError as err:
             raise ValueError(str(err).removeprefix("= ")) from None
         return kelvin
@@ -306,7 +309,10 @@ class RectLightSpec(_Emitter):
                 raise FieldError(key, "missing; add it, or give target instead")
         uvn = np.array([getattr(self, k) for k in axes])
         if not np.allclose(uvn @ uvn.T, np.eye(3), atol=1e-3):
-            raise ValueError("u_axis, v_axis, emit_direction must be orthogonal unit vectors")
+            raise ValueError(
+                "u_axis, v_axis, emit_direction must be orthogonal unit vectors (emit_direction "
+                "= -(u_axis x v_axis)); fix them, or give target (and up) instead"
+            )
         return self
 
     def per_watt(self) -> float:

@@ -92,6 +92,12 @@ def _scene_and_material(config: Path, scene: Path | None):
     from .material import load_preset, read_toml
 
     doc = read_toml(config)
+    if "fit" in doc or "views" in doc:
+        kind = "a fit config" if "fit" in doc else "a capture manifest"
+        raise CaptureError(
+            f"{config}: is {kind}; give a render config (a material and a [scene]) or a preset "
+            "with --scene SCENE.toml"
+        )
     if "schema" in doc:  # a preset: the material only
         if scene is None:
             raise CaptureError(f"{config}: is a preset (a material); give --scene SCENE.toml")
@@ -101,10 +107,13 @@ def _scene_and_material(config: Path, scene: Path | None):
         material, spp = cfg.material, cfg.spp
         if scene is None:
             return cfg.scene, material, spp
-    table = read_toml(scene)
-    if "scene" not in table:
-        raise CaptureError(f"{scene}: no [scene] table; give a TOML file with one")
-    return parse_scene(table["scene"], scene), material, spp
+    try:
+        table = read_toml(scene)
+        if "scene" not in table:
+            raise CaptureError(f"{scene}: no [scene] table; give a TOML file with one")
+        return parse_scene(table["scene"], scene), material, spp
+    except InputError as err:  # name the option the file came from
+        raise CaptureError(f"--scene {err}") from None
 
 
 def _start(variant: str | None) -> None:

@@ -134,6 +134,16 @@ def load_fit_config(
     doc = parse_model(_FitFile, read_toml(path), path)
     if capture is None:
         capture = (path.parent / doc.capture).resolve()
+        if not doc.capture.strip():
+            raise ConfigError(
+                f"{path}: capture = {doc.capture!r} is empty; give the capture's folder (holding "
+                "capture.toml), a peer scene.json or a DiLiGenT folder, relative to the config"
+            )
+        if capture == path.resolve():
+            raise ConfigError(
+                f"{path}: capture = {doc.capture!r} is this fit config; give the capture's folder "
+                "(holding capture.toml), a peer scene.json or a DiLiGenT folder"
+            )
         if not capture.exists():
             raise ConfigError(
                 f"{path}: capture = {doc.capture!r} does not exist (relative to {path.parent}); "

@@ -66,6 +66,11 @@ def resolve(material: Material, keys: list[str]) -> list[Free]:
 
 def _why_not(material: Material, text: str) -> str:
     """Why `text` is not a parameter of `material`, with the keys that are."""
+    if text.split(".")[0] in ("gain", "gains"):
+        return (
+            "per-view gains are not material parameters; set fit.gains = true (RGB) or "
+            '"exposure" (one grey gain per view) instead'
+        )
     key = parse_key(text)
     owners = {name for name, _ in material.layers} | ({""} if "bump" in material.params else set())
     if key.owner not in owners:

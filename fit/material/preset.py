@@ -128,13 +128,26 @@ def _clean(value):
     return value
 
 
+def _not_a_preset(doc: dict, schema) -> str:
+    """Why a TOML document without an integer `schema` is not a preset: what it looks like."""
+    if "fit" in doc or ("capture" in doc and "material" in doc):
+        return "is a fit config, not a preset; give a preset (e.g. a run's preset.toml)"
+    if "views" in doc or "truth" in doc:
+        return "is a capture manifest, not a preset; give a preset (e.g. a run's preset.toml)"
+    if "scene" in doc or "render" in doc:
+        return "is a render config, not a preset; give a preset (e.g. a run's preset.toml)"
+    if schema is None:
+        return "has no schema key: not a preset; a preset starts with schema = 1"
+    return f"schema = {schema!r} is not a preset version; a preset starts with schema = 1"
+
+
 def load_preset(path: str | Path) -> Preset:
     """A preset from its file; a `ConfigError` naming the file and key for anything wrong."""
     path = Path(path)
     doc = read_toml(path)
     schema = doc.get("schema")
     if isinstance(schema, bool) or not isinstance(schema, int):
-        raise ConfigError(f"{path}: schema = {schema!r}; a preset starts with schema = 1")
+        raise ConfigError(f"{path}: {_not_a_preset(doc, schema)}")
     doc = _upgrade(doc, path)
     unknown = sorted(set(doc) - set(_TOP_KEYS))
     if unknown:
@@ -192,8 +205,16 @@ def load_material(value, file: Path, where: str = "material") -> Material:
     config)."""
     if isinstance(value, str):
         preset = (Path(file).parent / value).resolve()
+        if not preset.exists():
+            raise ConfigError(
+                f"{file}: {where} = {value!r}: no such preset file ({preset}); give the path of "
+                "a preset, relative to the config, or a [material] table"
+            )
         if not preset.is_file():
-            raise ConfigError(f"{file}: {where} = {value!r} is not a preset file")
+            raise ConfigError(
+                f"{file}: {where} = {value!r} is a folder; give the path of a preset file "
+                "(e.g. a run's preset.toml)"
+            )
         return load_preset(preset).material
     material = build_material(value, file, where)
     if material is None:

@@ -55,7 +55,9 @@ class Phase(BaseModel):
             if key not in allowed:
                 known = ", ".join(allowed) or "none"
                 raise FieldError(
-                    key, f"does not apply to solver = {self.solver!r} (its options: {known})"
+                    key,
+                    f"does not apply to solver = {self.solver!r}; remove it, or use one of its "
+                    f"options: {known}",
                 )
         try:
             self._options = SOLVERS[self.solver].Options(**extra)

@@ -344,7 +344,7 @@ CASES: list[Case] = [
             (d / "m.obj").write_bytes(GARBAGE)
             and render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
         ),
-        ("m.obj", "no faces"),
+        ("m.obj", "not an OBJ text file"),
     ),
     (
         "obj-is-folder",
@@ -982,6 +982,54 @@ CASES: list[Case] = [
         "manifest-float-image-srgb",
         manifest('encoding = "linear"', 'encoding = "srgb"'),
         ("capture.toml", "views[0].image", 'encoding = "linear"'),
+    ),
+    (
+        "fit-free-gains",
+        fit_cfg('free = ["glaze.roughness"]', 'free = ["gains"]'),
+        ("fit.toml", "fit.free", "fit.gains"),
+    ),
+    (
+        "fit-material-missing-preset",
+        lambda d: (
+            (d / "fit.toml").write_text(
+                (d / "fit.toml").read_text().split("[material]")[0]
+                + 'material = "nope.toml"\n[fit]'
+                + (d / "fit.toml").read_text().split("[fit]")[1]
+            ),
+            ["fit", d / "fit.toml", "--out", d / "run"],
+        )[-1],
+        ("fit.toml", "nope.toml", "no such preset file"),
+    ),
+    (
+        "fit-capture-self",
+        fit_cfg('capture = "cap"', 'capture = "fit.toml"'),
+        ("fit.toml", "capture"),
+    ),
+    (
+        "fit-capture-empty",
+        fit_cfg('capture = "cap"', 'capture = ""'),
+        ("fit.toml", "capture", "empty"),
+    ),
+    (
+        "fit-capture-is-a-config",
+        fit_cfg('capture = "cap"', 'capture = "render.toml"'),
+        ("render.toml", "not a capture manifest"),
+    ),
+    ("synth-fit-config", lambda d: ["synth", d / "fit.toml", "--out", d / "c"], ("fit config",)),
+    (
+        "export-fit-config",
+        lambda d: ["export", d / "fit.toml", "--to", "usd", "--out", d / "e"],
+        ("fit.toml", "is a fit config, not a preset"),
+    ),
+    (
+        "manifest-camera-width-zero",
+        manifest("width = 16", "width = 0"),
+        ("capture.toml", "views[0].camera.width = 0", "positive"),
+    ),
+    (
+        "light-temperature-zero",
+        render_cfg("radiance = [200.0, 183.0, 163.0]", "radiance = 200.0\ntemperature = 0"),
+        ("render.toml", "temperature", "1667"),
     ),
     ("fit-holdout-all", fit_args("--out", out("run"), "--holdout", "1"), ("holdout",)),
     ("fit-holdout-neg", fit_args("--out", out("run"), "--holdout", "-1"), ("--holdout",)),
