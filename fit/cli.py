@@ -169,9 +169,12 @@ def render(
         the_scene, material, config_spp = _scene_and_material(config, scene)
         views = len(the_scene.cameras)
         paths = []
+        if out.is_dir():
+            raise InputError(f"--out {out}: is a folder; give an image file name (e.g. a.png)")
+        base = out.name[: -len(out.suffix)] if out.suffix else out.name  # only the last suffix
         for view in range(views):
-            stem = out.with_suffix("") if views == 1 else out.with_name(f"{out.stem}_{view:02d}")
-            files = dict.fromkeys((stem.with_suffix(".exr"), stem.with_suffix(out.suffix)))
+            name = base if views == 1 else f"{base}_{view:02d}"
+            files = dict.fromkeys(out.with_name(name + s) for s in (".exr", out.suffix))
             paths.append(list(files))
         inputs = _inputs(config, scene, the_scene, material)
         for path in (p for files in paths for p in files):

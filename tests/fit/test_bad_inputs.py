@@ -1142,6 +1142,20 @@ def test_help_shows_bracketed_text(capsys):
 # Valid but unusual inputs ------------------------------------------------------------------------
 
 
+def test_render_keeps_every_dot_of_the_out_name(base, tmp_path, capsys):
+    """`--out shot.v2.png` writes shot.v2.png and shot.v2.exr; a `shot.png` beside it (a name the
+    user never gave) is left alone, even with --force (was: cut at the first dot, overwritten)."""
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    (work / "shot.png").write_text("the user's own")
+    args = ["render", work / "render.toml", "--out", work / "shot.v2.png", "--spp", "1"]
+    code, _, stderr = run([*args, "--force"], capsys)
+    assert code == 0, stderr
+    assert (work / "shot.v2.png").is_file() and (work / "shot.v2.exr").is_file()
+    assert (work / "shot.png").read_text() == "the user's own"
+    assert not (work / "shot.exr").exists()
+
+
 def test_unusual_cameras_render(base, tmp_path, capsys):
     """An orthographic camera at an odd size and a thin lens render."""
     work = tmp_path / "w"
