@@ -19,3 +19,28 @@ parallel test workers ran out of GPU memory).
 import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+
+def _drop_shadowing_paths() -> None:
+    """Drop `sys.path` entries (other than this project's root) holding a folder named like one
+    of its packages: Ray starts its workers with the driver's working folder on `sys.path`, and
+    a user's photo folder `captures/` there, a namespace package to Python, hid this project's
+    `captures` from an editable install (every batch fit failed on an ImportError)."""
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    names = ("captures", "materials")
+    keep = []
+    for entry in sys.path:
+        folder = Path(entry or os.getcwd())
+        try:
+            shadows = folder.resolve() != root and any((folder / n).is_dir() for n in names)
+        except OSError:
+            shadows = False
+        if not shadows:
+            keep.append(entry)
+    sys.path[:] = keep
+
+
+_drop_shadowing_paths()

@@ -267,3 +267,22 @@ def test_bench_schedules_run_as_ray_tasks(tmp_path, ray_cluster):
     for row in table.rows:
         pigment_error = float(row[3].split()[0])
         assert pigment_error < 0.05  # both schedules recover the pigment at this size
+
+
+def test_a_captures_folder_in_the_working_folder_hides_nothing(tmp_path):
+    """Ray's workers start with the driver's working folder on `sys.path`: a user's photo folder
+    named `captures/` there (a namespace package to Python) hid this project's `captures` from
+    an editable install, and every batch fit failed. Importing `fit` drops such entries."""
+    import subprocess
+    import sys
+
+    (tmp_path / "captures" / "cup").mkdir(parents=True)
+    code = (
+        "import sys; sys.path.insert(0, ''); import fit, captures; "
+        "print(captures.__file__); from captures import CaptureError"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, check=False
+    )
+    assert result.returncode == 0, result.stderr
+    assert str(tmp_path) not in result.stdout and result.stdout.strip().endswith("__init__.py")
