@@ -744,9 +744,14 @@ def batch(
     """Run a batch of fits as Ray tasks: one run folder per fit and an index (JSON, CSV, HTML);
     finished fits are skipped, a failed one is reported and the others run on."""
     from .batch import Cancelled, load_batch, run_batch
+    from .batch.cluster import check_address
 
     try:
         the_batch = load_batch(spec)
+        if address is not None:
+            check_address(address)
+        elif os.environ.get("RAY_ADDRESS"):
+            check_address(os.environ["RAY_ADDRESS"], "RAY_ADDRESS")
     except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)

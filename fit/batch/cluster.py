@@ -26,6 +26,33 @@ class Cancelled(Exception):
     """Ctrl-C cancelled the Ray tasks (a batch's fits, a fit's starts); the message says what."""
 
 
+#: Seconds to wait for a cluster's address to answer before saying it does not.
+CONNECT_TIMEOUT = 5.0
+
+
+def check_address(address: str | None, where: str = "--address") -> None:
+    """Refuse, before Ray starts, an address that is not one (`HOST:PORT`, `ray://HOST:PORT`,
+    `auto`) or where nothing answers within `CONNECT_TIMEOUT` seconds (Ray itself waits minutes,
+    printing its own log lines)."""
+    from captures.errors import InputError
+
+    if address is None or address in ("auto", "local"):
+        return
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise InputError(
+            f"{where} {address!r}: not a cluster address; give HOST:PORT, ray://HOST:PORT or "
+            "auto (or leave it out to start Ray on this machine)"
+        )
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=CONNECT_TIMEOUT).close()
+    except OSError as err:
+        raise InputError(
+            f"{where} {address}: no Ray cluster answers there ({err.strerror or err}); check the "
+            "address, or leave it out to start Ray on this machine"
+        ) from None
+
+
 @contextlib.contextmanager
 def connect(address: str | None = None, num_cpus: int | None = None) -> Iterator[None]:
     """Ray for the duration of the block: an existing connection (a caller's, a test's) is used
@@ -42,17 +69,28 @@ def connect(address: str | None = None, num_cpus: int | None = None) -> Iterator
     if ray.is_initialized():
         yield
         return
+    where = "--address" if os.environ.get("RAY_ADDRESS") != address else "RAY_ADDRESS"
+    check_address(address, where)
     with warnings.catch_warnings():
         # Ray starts its processes by fork + exec; JAX, when loaded, warns at every fork
         warnings.filterwarnings("ignore", r"os\.fork\(\) was called", RuntimeWarning)
-        ray.init(
-            address=address,
-            num_cpus=None if address else num_cpus,
-            include_dashboard=False,
-            log_to_driver=False,
-            logging_level=logging.WARNING,
-            configure_logging=True,
-        )
+        try:
+            ray.init(
+                address=address,
+                num_cpus=None if address else num_cpus,
+                include_dashboard=False,
+                log_to_driver=False,
+                logging_level=logging.WARNING,
+                configure_logging=True,
+            )
+        except ConnectionError as err:  # `auto` with no cluster running, a cluster gone
+            from captures.errors import InputError
+
+            first = str(err).strip().splitlines()[0] if str(err).strip() else "no answer"
+            raise InputError(
+                f"{where} {address}: cannot join a Ray cluster ({first}); start one, or leave "
+                "it out to start Ray on this machine"
+            ) from None
     try:
         yield
     finally:

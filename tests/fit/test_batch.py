@@ -286,3 +286,18 @@ def test_a_captures_folder_in_the_working_folder_hides_nothing(tmp_path):
     )
     assert result.returncode == 0, result.stderr
     assert str(tmp_path) not in result.stdout and result.stdout.strip().endswith("__init__.py")
+
+
+def test_a_bad_cluster_address_is_one_line_before_ray(tmp_path):
+    """An address that is not one, or where nothing answers, is refused in a few seconds naming
+    the option (Ray itself waited minutes printing its own log lines, or raised an internal
+    error)."""
+    from captures.errors import InputError
+    from fit.batch.cluster import check_address
+
+    check_address(None)
+    check_address("auto")
+    with pytest.raises(InputError, match=r"--address 'not a host::x': not a cluster address"):
+        check_address("not a host::x")
+    with pytest.raises(InputError, match=r"RAY_ADDRESS 127.0.0.1:1: no Ray cluster answers"):
+        check_address("127.0.0.1:1", "RAY_ADDRESS")
