@@ -44,6 +44,8 @@ VariantOption = Annotated[
 
 #: The largest seed (the renders' seeds are 32-bit).
 MAX_SEED = 2**32 - 1
+#: The scenes `bench` reads (`fit.commands.bench`): never one of its outputs.
+BENCH_SCENES = (Path("configs/glazed-sphere.toml"), Path("configs/cup.toml"))
 #: Image types `render --out` writes.
 IMAGE_SUFFIXES = (".png", ".exr", ".tif", ".tiff", ".jpg", ".jpeg")
 
@@ -267,6 +269,8 @@ def bench(
     memory per step over a long Adam run, plotted to a PNG beside --out (or bench-long.png)."""
     from captures.files import check_output, write_text
 
+    from .output.figures import drawn_by_layerfit
+
     if only not in (None, "bsdf", "cup", "fit", "long", "recovery", "grid", "profile", "versus"):
         raise _fail(
             f"--only {only!r}: unknown table; choose bsdf, cup, fit, long, recovery, grid, "
@@ -289,12 +293,25 @@ def bench(
     if results.is_dir():
         raise _fail(f"--results {results}: is a folder; give a JSON file name", 2)
     try:
+        inputs = [fit_config, *BENCH_SCENES]
+        if only in ("recovery", "grid", "versus"):
+            inputs.append(results)  # a resumable run's finished cases are never overwritten
         if out is not None:
-            check_output(out, "--out", force=force, inputs=[fit_config])
-        # a resumed grid or versus run redraws its plot from the results
-        resuming = only in ("grid", "versus") and results.exists()
-        if plot is not None and not resuming:
-            check_output(plot, "--out (its plot)", force=force, inputs=[fit_config])
+            check_output(out, "--out", force=force, inputs=inputs)
+            if plot is not None and out.resolve() == plot.resolve():
+                raise InputError(
+                    f"--out {out}: the tables and the plot would share it (the plot is PNG); "
+                    "give the tables a .md name"
+                )
+        if plot is not None:
+            # a resumed run redraws its own plot (tagged by layerfit); never a user's file
+            redraw = force or drawn_by_layerfit(plot)
+            check_output(plot, "--out (its plot)", force=redraw, inputs=inputs)
+        parent = results.resolve().parent
+        while not parent.exists():
+            parent = parent.parent
+        if not parent.is_dir():
+            raise InputError(f"--results {results}: {parent} is a file; give a path in a folder")
     except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)

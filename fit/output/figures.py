@@ -17,13 +17,30 @@ def pyplot():
     return plt
 
 
+#: The PNG `Software` tag of every figure layerfit writes: a file carrying it may be redrawn
+#: (a resumed bench), any other is a user's own.
+SOFTWARE = "layerfit"
+
+
 def save_figure(fig, out: Path, dpi: int = 110) -> Path:
     """Save `fig` to `out` through a temporary file (a reader never sees half a PNG), then close
-    it."""
+    it. PNGs are tagged `Software = layerfit`."""
     plt = pyplot()
+    fmt = out.suffix.lstrip(".").lower() or "png"
     try:
         with atomic_path(out) as partial:
-            fig.savefig(partial, dpi=dpi, format=out.suffix.lstrip(".") or "png")
+            metadata = {"Software": SOFTWARE} if fmt == "png" else None
+            fig.savefig(partial, dpi=dpi, format=fmt, metadata=metadata)
     finally:
         plt.close(fig)
     return out
+
+
+def drawn_by_layerfit(path: Path) -> bool:
+    """Whether `path` is a PNG that layerfit drew (its `Software` tag)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    return head.startswith(b"\x89PNG") and b"Software\x00" + SOFTWARE.encode() in head

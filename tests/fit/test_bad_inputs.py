@@ -1031,6 +1031,32 @@ CASES: list[Case] = [
         render_cfg("radiance = [200.0, 183.0, 163.0]", "radiance = 200.0\ntemperature = 0"),
         ("render.toml", "temperature", "1667"),
     ),
+    (
+        "bench-out-is-results",
+        lambda d: ["bench", "--only", "versus", "--results", d / "r.json", "--out", d / "r.json"],
+        ("--out", "r.json", "input"),
+    ),
+    (
+        "bench-out-is-plot",
+        lambda d: ["bench", "--only", "grid", "--results", d / "g.json", "--out", d / "v.png"],
+        ("--out", "v.png", ".md"),
+    ),
+    (
+        "bench-plot-is-users",
+        lambda d: (
+            (d / "mine.png").write_text("the user's own"),
+            ["bench", "--only", "versus", "--results", d / "r3.json", "--out", d / "mine.md"],
+        )[-1],
+        ("mine.png", "--force"),
+    ),
+    (
+        "bench-results-under-file",
+        lambda d: (
+            (d / "f").write_text("x"),
+            ["bench", "--only", "recovery", "--results", d / "f" / "x.json"],
+        )[-1],
+        ("--results", "is a file"),
+    ),
     ("fit-holdout-all", fit_args("--out", out("run"), "--holdout", "1"), ("holdout",)),
     ("fit-holdout-neg", fit_args("--out", out("run"), "--holdout", "-1"), ("--holdout",)),
     ("fit-out-file", fit_args("--out", out("f"), setup=write("f", "x")), ("--out", "is a file")),
