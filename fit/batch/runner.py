@@ -52,17 +52,45 @@ COLUMNS = (
 CANCEL_GRACE_S = 20.0
 
 
-def finished(out: Path) -> dict | None:
+def finished(out: Path, job: Job | None = None) -> dict | None:
     """The summary of a finished fit in run folder `out`, else None. A fit writes its summary
     after its other files and removes its checkpoint last: a summary beside a checkpoint, or
-    of an interrupted run, is not finished."""
+    of an interrupted run, is not finished; nor is one that is not a summary, or (given the
+    `job`) one of another config, capture or seed (the fit runs again and replaces it)."""
     if (out / "checkpoint.npz").exists():
         return None
     try:
         summary = json.loads((out / "summary.json").read_text())
     except (OSError, ValueError):
         return None
-    return None if summary.get("interrupted", True) else summary
+    if not isinstance(summary, dict) or summary.get("interrupted", True) is not False:
+        return None
+    shapes = (summary.get("values"), summary.get("error", {}))
+    if not all(isinstance(part, dict) for part in shapes):
+        return None
+    if job is not None and not _same_fit(summary, job):
+        return None
+    return summary
+
+
+def _same_fit(summary: dict, job: Job) -> bool:
+    """Whether a finished summary is the fit `job` asks for (its config file, capture, seed)."""
+    from ..config import load_fit_config
+
+    try:
+        config = Path(str(summary.get("config"))).resolve()
+        if config != Path(job.config).resolve():
+            return False
+        if (
+            job.capture is not None
+            and Path(str(summary.get("capture"))).resolve() != Path(job.capture).resolve()
+        ):
+            return False
+        if job.seed is not None:
+            return summary.get("seed") == job.seed
+        return summary.get("seed") == load_fit_config(job.config).seed
+    except (OSError, ValueError, TypeError, InputError):
+        return False
 
 
 def fit_job(job: Job, cpus: int, variant: str | None, kernel_cache: str) -> dict:
@@ -118,7 +146,7 @@ def run_batch(
     entries = {job.name: _base(batch, job) for job in batch.jobs}
     todo = []
     for job in batch.jobs:
-        summary = finished(job.out)
+        summary = finished(job.out, job)
         if summary is None:
             todo.append(job)
         else:

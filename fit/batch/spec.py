@@ -3,6 +3,7 @@ many CPUs each; loaded into a list of `Job`s, one run folder each."""
 
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -97,4 +98,46 @@ def load_batch(path: str | Path) -> Batch:
                     )
                 names[name] = config
                 jobs.append(Job(name, config, capture, seed, out / name))
+    _check_out(path, spec, out, set(names))
     return Batch(path, spec, jobs)
+
+
+#: What a batch folder holds besides its run folders.
+INDEX_FILES = ("index.json", "index.csv", "index.html")
+
+
+def _check_out(path: Path, spec: BatchSpec, out: Path, runs: set[str]) -> None:
+    """Refuse a batch folder that holds a user's files (its index would overwrite theirs) or
+    another spec's batch (their indexes would replace each other)."""
+    if not out.is_dir():
+        return
+    index = out / "index.json"
+    if index.is_file():
+        try:
+            other = json.loads(index.read_text(encoding="utf-8")).get("spec")
+        except (OSError, ValueError, AttributeError):
+            other = None
+        if other is None or Path(other).resolve() != path.resolve():
+            raise ConfigError(
+                f"{path}: out = {str(spec.out)!r} holds another batch's index ("
+                f"{other or 'unreadable'}); give this batch its own out folder"
+            )
+    ours = INDEX_FILES if index.is_file() else ()  # an index of this spec (checked above)
+    foreign = sorted(
+        p.name
+        for p in out.iterdir()
+        if not p.name.startswith(".")
+        and p.name not in ours
+        and not (p.is_dir() and (p.name in runs or _is_run(p)))
+    )
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        raise ConfigError(
+            f"{path}: out = {str(spec.out)!r} holds files that are not this batch's ({shown}); "
+            "give the batch a new or its own out folder"
+        )
+
+
+def _is_run(folder: Path) -> bool:
+    """A run folder `layerfit fit` wrote (a batch's earlier fits whose config left the spec)."""
+    return any((folder / n).is_file() for n in ("summary.json", "checkpoint.npz"))

@@ -301,3 +301,54 @@ def test_a_bad_cluster_address_is_one_line_before_ray(tmp_path):
         check_address("not a host::x")
     with pytest.raises(InputError, match=r"RAY_ADDRESS 127.0.0.1:1: no Ray cluster answers"):
         check_address("127.0.0.1:1", "RAY_ADDRESS")
+
+
+def test_a_batch_folder_keeps_a_users_files_and_other_batches(tmp_path):
+    """The index is written into `out` before any fit: a folder holding a user's files (their
+    own index.html too) or another spec's batch is refused, naming the spec and `out`."""
+    from captures.errors import InputError
+
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "fit.toml").write_text(TINY)
+    mine = tmp_path / "mydocs"
+    mine.mkdir()
+    (mine / "index.html").write_text("the user's own")
+    spec = tmp_path / "batch.toml"
+    spec.write_text('configs = ["a/fit.toml"]\nout = "mydocs"\n')
+    with pytest.raises(InputError, match=r"batch.toml: out = 'mydocs' holds files .*index.html"):
+        load_batch(spec)
+    (mine / "index.html").unlink()
+    (mine / "index.json").write_text(json.dumps({"spec": str(tmp_path / "other.toml")}))
+    with pytest.raises(InputError, match=r"holds another batch's index \(.*other.toml\)"):
+        load_batch(spec)
+    (mine / "index.json").write_text(json.dumps({"spec": str(spec)}))
+    (mine / "index.html").write_text("this batch's own")
+    assert [job.name for job in load_batch(spec).jobs] == ["fit"]
+
+
+def test_only_a_matching_finished_summary_skips_a_fit(tmp_path):
+    """A run folder is skipped only for a finished summary of the same config and seed; one
+    that is not a summary, or of another config, runs again (was: an internal error, or another
+    config's results credited)."""
+    from fit.batch.runner import finished
+
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "fit.toml").write_text(TINY)
+    (tmp_path / "a" / "other.toml").write_text(TINY)
+    spec = tmp_path / "batch.toml"
+    spec.write_text('configs = ["a/fit.toml"]\nseeds = [3]\n')
+    (job,) = load_batch(spec).jobs
+    job.out.mkdir(parents=True)
+    summary = {"interrupted": False, "values": {}, "error": {}, "seed": 3}
+    for text in ("[1, 2]", json.dumps({**summary, "error": "oops"})):
+        (job.out / "summary.json").write_text(text)
+        assert finished(job.out, job) is None
+    (job.out / "summary.json").write_text(json.dumps({**summary, "config": str(job.config)}))
+    assert finished(job.out, job) is not None
+    other = {**summary, "config": str(tmp_path / "a" / "other.toml")}
+    (job.out / "summary.json").write_text(json.dumps(other))
+    assert finished(job.out, job) is None
+    (job.out / "summary.json").write_text(
+        json.dumps({**summary, "config": str(job.config), "seed": 4})
+    )
+    assert finished(job.out, job) is None
