@@ -1182,6 +1182,15 @@ def test_render_keeps_every_dot_of_the_out_name(base, tmp_path, capsys):
     assert not (work / "shot.exr").exists()
 
 
+def test_the_largest_seed_renders_more_than_one_pass(base, tmp_path, capsys):
+    """--seed 2^32 - 1 with two passes: the second pass's seed wraps (was an internal error)."""
+    from fit.render.image import PASS_SPP
+
+    args = ["render", base / "render.toml", "--out", tmp_path / "o.png"]
+    code, _, stderr = run([*args, "--seed", str(2**32 - 1), "--spp", str(PASS_SPP + 1)], capsys)
+    assert code == 0, stderr
+
+
 def test_unusual_cameras_render(base, tmp_path, capsys):
     """An orthographic camera at an odd size and a thin lens render."""
     work = tmp_path / "w"
