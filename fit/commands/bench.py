@@ -572,10 +572,18 @@ def schedule_key(schedule) -> list[str]:
     return [f"{p.describe()} x {p.steps} {p.options!r}" for p in schedule]
 
 
-def _resumed(results: Path, setting: dict, entries: str, other: str, replace: bool) -> dict:
-    """The finished entries of a resumable results file (JSON: its `setting` and `entries`);
-    none when it does not exist or with `replace`. A file that is not such JSON, or holds
-    `other` (another setting), is refused: nothing a user has is overwritten."""
+def _resumed(
+    results: Path,
+    setting: dict,
+    entries: str,
+    other: str,
+    replace: bool,
+    required: tuple[str, ...] = ("seconds",),
+) -> dict:
+    """The finished entries of a resumable results file (JSON: its `setting` and `entries`,
+    each entry a table with the `required` keys); none when it does not exist or with
+    `replace`. A file that is not such JSON, or holds `other` (another setting), is refused:
+    nothing a user has is overwritten."""
     import json
 
     if not results.exists() or replace:
@@ -589,7 +597,20 @@ def _resumed(results: Path, setting: dict, entries: str, other: str, replace: bo
         raise InputError(
             f"{results}: holds {other}; give another --results, or delete it to start again"
         )
-    return saved.get(entries, {})
+    done = saved.get(entries, {})
+    if not isinstance(done, dict):
+        raise InputError(
+            f"{results}: {entries}: not a table of finished entries; delete the file or give "
+            "another --results"
+        )
+    for name, entry in done.items():
+        missing = [k for k in required if not isinstance(entry, dict) or k not in entry]
+        if missing:
+            raise InputError(
+                f"{results}: {entries}[{name!r}]: no {missing[0]}; delete the file or give "
+                "another --results"
+            )
+    return done
 
 
 def recovery_table(
@@ -622,7 +643,12 @@ def recovery_table(
         "start": recovery.START,
     }
     done = _resumed(
-        results, setting, "cases", "a sweep of another size, schedule or start", replace
+        results,
+        setting,
+        "cases",
+        "a sweep of another size, schedule or start",
+        replace,
+        ("values", "std", "seconds"),
     )
     task = progress.add_task("bench: recovery", total=len(cases)) if progress else None
     outcomes = []
@@ -839,7 +865,14 @@ def versus_table(
     from ..solvers import DEFAULT_SCHEDULE
 
     setting = {"target_spp": VERSUS_TARGET_SPP, "width": VERSUS_WIDTH}
-    done = _resumed(results, setting, "runs", "runs of another setting", replace)
+    done = _resumed(
+        results,
+        setting,
+        "runs",
+        "runs of another setting",
+        replace,
+        ("seconds", "max_relative_error", "trajectory"),
+    )
     schedule = schedule_key(DEFAULT_SCHEDULE)
     runs = [(m, k) for k in range(seeds) for m in ("default", "tutorial")]
     task = progress.add_task("bench: default vs tutorial", total=len(runs)) if progress else None
@@ -1147,7 +1180,10 @@ def grid_table(
     from ..solvers import DEFAULT_SCHEDULE
 
     setting = {"default": schedule_key(DEFAULT_SCHEDULE)}
-    done = _resumed(results, setting, "cells", "a grid of another default schedule", replace)
+    required = ("seconds", "renders", "max_relative_error", "held_out_rmse")
+    done = _resumed(
+        results, setting, "cells", "a grid of another default schedule", replace, required
+    )
     task = progress.add_task("bench: grid", total=len(cells)) if progress else None
     for cell in cells:
         name = _cell_name(*cell)

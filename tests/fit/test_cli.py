@@ -117,3 +117,27 @@ def test_render_a_preset_in_a_scene(tmp_path):
     assert (tmp_path / "r.exr").exists() and (tmp_path / "r.png").exists()
     missing = run_cli("render", preset, "--out", tmp_path / "s.png")
     assert missing.returncode == 2 and "give --scene" in missing.stderr
+
+
+def test_a_malformed_results_file_is_one_line(tmp_path):
+    """A resumable results file with the right setting but malformed entries is refused naming
+    the entry and the fix (was an AttributeError or a KeyError after the setting matched)."""
+    import json
+
+    import pytest
+
+    from captures.errors import InputError
+    from fit.commands.bench import _resumed
+
+    setting = {"size": [8, 6]}
+    path = tmp_path / "r.json"
+    for entries, message in (
+        ("oops", r"runs: not a table of finished entries"),
+        ({"tutorial 0": {"max_relative_error": 0.1}}, r"runs\['tutorial 0'\]: no seconds"),
+        ({"tutorial 0": [1, 2]}, r"runs\['tutorial 0'\]: no seconds"),
+    ):
+        path.write_text(json.dumps({"setting": setting, "runs": entries}))
+        with pytest.raises(InputError, match=message):
+            _resumed(path, setting, "runs", "another setting", False)
+    path.write_text(json.dumps({"setting": setting, "runs": {"a": {"seconds": 1.0}}}))
+    assert _resumed(path, setting, "runs", "another setting", False) == {"a": {"seconds": 1.0}}
