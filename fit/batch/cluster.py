@@ -107,7 +107,15 @@ def prepare_worker(cpus: int, variant: str | None, kernel_cache: str | None = No
         return variant
     if kernel_cache and "DRJIT_CACHE_DIR" not in os.environ:
         folder = os.path.expanduser(kernel_cache.format(host=socket.gethostname()))
-        os.makedirs(folder, exist_ok=True)
+        try:
+            os.makedirs(folder, exist_ok=True)
+        except OSError as err:
+            from captures.errors import InputError
+
+            raise InputError(
+                f"kernel_cache = {kernel_cache!r}: cannot make {folder} on "
+                f"{socket.gethostname()} ({err.strerror or err}); give a folder path there"
+            ) from None
         os.environ["DRJIT_CACHE_DIR"] = folder
     chosen = select_variant(variant)
     import drjit as dr

@@ -104,7 +104,7 @@ def fit_job(job: Job, cpus: int, variant: str | None, kernel_cache: str) -> dict
         from ..config import load_fit_config
 
         cfg = load_fit_config(job.config, job.capture, job.seed)
-        resume = (job.out / "checkpoint.npz").exists()
+        resume = _check_run_folder(job.out)
         check_output(job.out, cfg, resume, force=True)  # a failed run's leftovers are replaced
         summary = run_fit(cfg, job.out, resume=resume)
         entry |= summary_entry(summary) | {"status": "done"}
@@ -112,9 +112,35 @@ def fit_job(job: Job, cpus: int, variant: str | None, kernel_cache: str) -> dict
         message = str(err).strip().splitlines()[0] if str(err).strip() else ""
         entry |= {"status": "failed", "error": f"{type(err).__name__}: {message}"}
         log.exception("fit %s failed", job.name)
+        if job.out.is_dir() and not any(job.out.iterdir()):  # no empty folder left behind
+            job.out.rmdir()
     entry["wall_time_s"] = entry.get("wall_time_s") or time.perf_counter() - began
     entry["max_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return entry
+
+
+def _check_run_folder(out: Path) -> bool:
+    """Whether a batch fit resumes from `out`'s checkpoint; a folder holding other files, or an
+    unreadable checkpoint, is an error saying what to do in a batch (which has no --force)."""
+    from ..solvers import Checkpoint
+
+    path = out / "checkpoint.npz"
+    if path.exists():
+        try:
+            Checkpoint(path).load()
+        except InputError:
+            raise InputError(
+                f"{path}: unreadable, or not a fit's checkpoint; delete it to run this fit again"
+            ) from None
+        return True
+    runs = ("summary.json", "checkpoint.npz")
+    if out.is_dir() and any(out.iterdir()) and not any((out / n).is_file() for n in runs):
+        names = sorted(p.name for p in out.iterdir())[:3]
+        raise InputError(
+            f"run folder {out} holds files that are not a run's ({', '.join(names)}); move them "
+            "away, or give the batch another out folder"
+        )
+    return False
 
 
 def summary_entry(summary: dict) -> dict:

@@ -352,3 +352,25 @@ def test_only_a_matching_finished_summary_skips_a_fit(tmp_path):
         json.dumps({**summary, "config": str(job.config), "seed": 4})
     )
     assert finished(job.out, job) is None
+
+
+def test_a_run_folder_that_is_not_a_run_is_said_for_a_batch(tmp_path, monkeypatch):
+    """In a batch (no --out, no --force) a job's folder holding other files, or a checkpoint
+    that cannot be read, says what to do there; an unmakeable kernel cache names its key."""
+    from captures.errors import InputError
+    from fit.batch.cluster import prepare_worker
+    from fit.batch.runner import _check_run_folder
+
+    run = tmp_path / "run"
+    assert _check_run_folder(run) is False
+    run.mkdir()
+    (run / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match=r"holds files that are not a run's \(notes.txt\)"):
+        _check_run_folder(run)
+    (run / "checkpoint.npz").write_bytes(b"junk")
+    with pytest.raises(InputError, match=r"checkpoint.npz: unreadable.*delete it"):
+        _check_run_folder(run)
+    (tmp_path / "afile").write_text("x")
+    monkeypatch.delenv("DRJIT_CACHE_DIR", raising=False)
+    with pytest.raises(InputError, match=r"kernel_cache = .*afile"):
+        prepare_worker(1, None, str(tmp_path / "afile" / "{host}"))
