@@ -279,6 +279,13 @@ def bench(
         )
     if steps < 2:
         raise _fail(f"--steps {steps}: give at least 2", 2)
+    missing = [s for s in BENCH_SCENES if not s.is_file()]
+    if only in (None, "bsdf", "cup") and missing:
+        raise _fail(
+            f"{missing[0]}: not found from {Path.cwd()}; run layerfit bench from the repository "
+            "root (it reads the bundled configs)",
+            2,
+        )
     width, height, shape_list = (
         _recovery_options(size, shapes) if only in ("recovery", "grid", "profile") else (0, 0, [])
     )

@@ -7,10 +7,11 @@ import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 from pydantic import Field
 
-from captures.model import ExistingPath, NonNegativeInt, PositiveInt, StrictModel, parse_model
+from captures.model import ExistingPath, PositiveInt, StrictModel, parse_model
 
 from ..errors import ConfigError
 from ..material import read_toml
@@ -22,7 +23,9 @@ class BatchSpec(StrictModel):
     """Fit configs (TOML), relative to the spec; each fit starts from its config's material."""
     captures: list[ExistingPath] = Field(default_factory=list)
     """Captures that replace each config's own (empty: every config fits its own capture)."""
-    seeds: list[NonNegativeInt] = Field(default_factory=list)
+    seeds: list[Annotated[int, Field(ge=0, le=2**32 - 1, strict=True)]] = Field(
+        default_factory=list
+    )
     """Seeds that replace each config's `fit.seed` (empty: the config's seed)."""
     out: Path = Path("out/batch")
     """The batch folder, relative to the spec: one run folder per fit and the index."""
@@ -70,7 +73,19 @@ def _slug(text: str) -> str:
 def load_batch(path: str | Path) -> Batch:
     """A batch spec from its file; a one-line `InputError` naming the file and key."""
     path = Path(path)
-    spec = parse_model(BatchSpec, read_toml(path), path)
+    doc = read_toml(path)
+    if "fit" in doc or "material" in doc:
+        kind = "a fit config" if "fit" in doc else "a render config"
+        raise ConfigError(
+            f'{path}: is {kind}, not a batch spec; a spec lists configs = ["fit.toml", ...] '
+            "(see layerfit batch --help and README, Batches)"
+        )
+    spec = parse_model(BatchSpec, doc, path)
+    for key in ("configs", "captures", "seeds"):
+        items = [str(x) if key == "seeds" else Path(x).resolve() for x in getattr(spec, key)]
+        twice = next((x for i, x in enumerate(items) if x in items[:i]), None)
+        if twice is not None:
+            raise ConfigError(f"{path}: {key}: {twice} is listed twice; list each once")
     try:
         spec.kernel_cache.format(host="node")
     except (KeyError, IndexError, ValueError):

@@ -131,7 +131,14 @@ def load_fit_config(
     """A fit config from its file, its capture and seed replaced when given (a batch's); a
     one-line `InputError` naming the file and key."""
     path = Path(path)
-    doc = parse_model(_FitFile, read_toml(path), path)
+    table = read_toml(path)
+    if "fit" not in table and ("scene" in table or "views" in table):
+        kind = "a render config" if "scene" in table else "a capture manifest"
+        raise ConfigError(
+            f"{path}: is {kind}, not a fit config; a fit config names its capture, a "
+            "[material] and a [fit] table (configs/cup-fit.toml is one)"
+        )
+    doc = parse_model(_FitFile, table, path)
     if capture is None:
         capture = (path.parent / doc.capture).resolve()
         if not doc.capture.strip():

@@ -1057,6 +1057,11 @@ CASES: list[Case] = [
         )[-1],
         ("--results", "is a file"),
     ),
+    (
+        "fit-render-config",
+        lambda d: ["fit", d / "render.toml", "--out", d / "run"],
+        ("render.toml", "not a fit config"),
+    ),
     ("fit-holdout-all", fit_args("--out", out("run"), "--holdout", "1"), ("holdout",)),
     ("fit-holdout-neg", fit_args("--out", out("run"), "--holdout", "-1"), ("--holdout",)),
     ("fit-out-file", fit_args("--out", out("f"), setup=write("f", "x")), ("--out", "is a file")),

@@ -151,6 +151,9 @@ def test_a_bad_spec_is_one_line(tmp_path):
         ('configs = ["a/fit.toml", "b/fit.toml"]\n', "share the run folder 'fit'"),
         ('configs = ["a/fit.toml"]\nkernel_cache = "~/{node}"\n', "only {host} may be filled in"),
         ('configs = ["a/fit.toml"]\nout = "a/fit.toml"\n', "out = 'a/fit.toml' is a file"),
+        ('configs = ["a/fit.toml"]\nseeds = [0, 0]\n', "seeds: 0 is listed twice"),
+        ('configs = ["a/fit.toml"]\nseeds = [5000000000]\n', "seeds[0]"),
+        (TINY, "is a fit config, not a batch spec"),
     ):
         spec.write_text(text)
         with pytest.raises(InputError, match=re.escape(message)) as err:
