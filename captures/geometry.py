@@ -205,9 +205,21 @@ def _check_numbers(path: Path, number: int, words: list[str]) -> list[float]:
 
 
 def check_obj_has_uvs(path: str | Path) -> None:
+    """Raise `CaptureError` unless the OBJ at `path` is a mesh the renderer can load (see
+    `check_obj`) with texture coordinates on every face (layer masks and noise live in UV)."""
+    faces, without = check_obj(path)
+    if without:
+        raise CaptureError(
+            f"{path}: the OBJ has no texture coordinates on {without} of {faces} faces; layer "
+            "masks and textures need UVs: unwrap it (e.g. Blender: UV > Smart UV Project) and "
+            "export with UVs"
+        )
+
+
+def check_obj(path: str | Path) -> tuple[int, int]:
     """Raise `CaptureError` unless the OBJ at `path` is a mesh the renderer can load: faces of 3
-    or more corners whose vertex, texture and normal indices exist, and texture coordinates on
-    every face."""
+    or more corners whose vertex, texture and normal indices exist, not all of zero area.
+    Returns (faces, faces without texture coordinates)."""
     path = Path(path)
     try:
         text = path.read_text(errors="replace")
@@ -265,7 +277,7 @@ def check_obj_has_uvs(path: str | Path) -> None:
                 faces_with_vt += 1
     if faces == 0:
         what = "is not an OBJ text file" if not positions else "the OBJ has no faces"
-        raise CaptureError(f"{path}: {what}; give a triangle mesh with UVs (OBJ text)")
+        raise CaptureError(f"{path}: {what}; give a triangle mesh (OBJ text)")
     p, t = np.asarray(positions, np.float64), np.asarray(triangles)
     area = np.linalg.norm(np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]]), axis=1)
     extent = float(np.ptp(p[t.ravel()], axis=0).max())
@@ -274,9 +286,4 @@ def check_obj_has_uvs(path: str | Path) -> None:
             f"{path}: every one of its {faces} faces has zero area (its corners on one point or "
             "line): nothing to render; check the export"
         )
-    if counts["vt"] == 0 or faces_with_vt < faces:
-        raise CaptureError(
-            f"{path}: the OBJ has no texture coordinates on {faces - faces_with_vt} of {faces} "
-            "faces; layer masks and textures need UVs: unwrap it (e.g. Blender: UV > Smart UV "
-            "Project) and export with UVs"
-        )
+    return faces, faces - faces_with_vt if counts["vt"] else faces

@@ -37,9 +37,11 @@ class Cup:
 
 @dataclass(frozen=True)
 class ObjFile:
-    """A triangle mesh from an OBJ file with UVs."""
+    """A triangle mesh from an OBJ file; `uvs`: texture coordinates on every face (what layer
+    masks, textures and the glaze's noise need; a plain material renders without)."""
 
     path: Path
+    uvs: bool = True
 
 
 Geometry = Sphere | Cup | ObjFile

@@ -40,7 +40,7 @@ from pydantic import BeforeValidator, Field, StrictBool, field_validator, model_
 
 from .color import blackbody_rgb
 from .errors import CaptureError
-from .geometry import CupShape, check_obj_has_uvs
+from .geometry import CupShape, check_obj
 from .model import (
     ExistingPath,
     FieldError,
@@ -133,7 +133,7 @@ class CupSpec(StrictModel):
 
 class ObjSpec(StrictModel):
     type: Literal["obj"]
-    """A triangle mesh with UVs from an OBJ file."""
+    """A triangle mesh from an OBJ file (UVs where the material has masks, textures or noise)."""
     file: ExistingPath
     """The OBJ file, relative to the TOML file's folder."""
 
@@ -148,8 +148,8 @@ class ObjSpec(StrictModel):
         return path
 
     def build(self) -> ObjFile:
-        check_obj_has_uvs(self.file)
-        return ObjFile(self.file)
+        _, without = check_obj(self.file)
+        return ObjFile(self.file, uvs=without == 0)
 
 
 def _geometry_shorthand(value):

@@ -91,7 +91,7 @@ def _scene_and_material(config: Path, scene: Path | None):
     from captures import CaptureError, parse_scene
 
     from .config import load_render_config
-    from .material import load_preset, read_toml
+    from .material import check_uvs, load_preset, read_toml
 
     doc = read_toml(config)
     if "fit" in doc or "views" in doc:
@@ -108,12 +108,15 @@ def _scene_and_material(config: Path, scene: Path | None):
         cfg = load_render_config(config)
         material, spp = cfg.material, cfg.spp
         if scene is None:
+            check_uvs(cfg.scene, material)
             return cfg.scene, material, spp
     try:
         table = read_toml(scene)
         if "scene" not in table:
             raise CaptureError(f"{scene}: no [scene] table; give a TOML file with one")
-        return parse_scene(table["scene"], scene), material, spp
+        the_scene = parse_scene(table["scene"], scene)
+        check_uvs(the_scene, material)
+        return the_scene, material, spp
     except InputError as err:  # name the option the file came from
         raise CaptureError(f"--scene {err}") from None
 

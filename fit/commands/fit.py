@@ -36,7 +36,16 @@ from captures.capture import MIN_SIDE, Capture
 from captures.images import TEXTURE_SUFFIXES, write_image
 
 from ..config import FitConfig
-from ..material import Free, parse_key, provenance, resolve, save_preset, start_values, to_physical
+from ..material import (
+    Free,
+    check_uvs,
+    parse_key,
+    provenance,
+    resolve,
+    save_preset,
+    start_values,
+    to_physical,
+)
 from ..material.preset import software_versions
 from ..output import ViewPanel, write_report, write_text
 from ..solvers import Checkpoint, Problem, Result, run_schedule
@@ -189,6 +198,7 @@ def prepare(cfg: FitConfig, holdout: int | None = None) -> Prepared:
     except KeyError as err:  # a free key: name the config it came from
         raise InputError(f"{cfg.path}: fit.free: {err.args[0]}") from None
     check_truth(capture, free, capture.path or cfg.capture, cfg.material)
+    check_uvs(capture.scene, cfg.material)
     problem = Problem(fitted, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)
     for k, phase in enumerate(cfg.phases):  # fail before any work, naming the phase
         try:

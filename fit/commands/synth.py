@@ -91,7 +91,7 @@ def synthesize(
 def _replace_geometry(scene: Scene, path: Path) -> Scene:
     from dataclasses import replace
 
-    return replace(scene, geometry=ObjFile(path))
+    return replace(scene, geometry=replace(scene.geometry, path=path))
 
 
 def _replace_env(scene: Scene, path: Path) -> Scene:

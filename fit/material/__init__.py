@@ -1,7 +1,7 @@
 """Materials as data: a `[material]` table -> the Mitsuba dict and its parameter table, the key
 grammar, free parameters and the native preset. No Mitsuba import at module level."""
 
-from .build import Material, Param, build_material, material_dict
+from .build import Material, Param, build_material, check_uvs, material_dict
 from .free import Free, as_dict, resolve, start_values, to_physical, to_unconstrained
 from .keys import Key, key, parse_key
 from .preset import (
@@ -23,6 +23,7 @@ __all__ = [
     "Preset",
     "as_dict",
     "build_material",
+    "check_uvs",
     "key",
     "load_material",
     "load_preset",

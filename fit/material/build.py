@@ -74,6 +74,15 @@ class Material:
     layers: tuple[tuple[str, str], ...]
     stacked: bool = field(default=False)
 
+    def needs_uvs(self) -> list[str]:
+        """What in this material is looked up in UV space (masks, textures, the glaze's noise):
+        the keys, or nothing (it renders on a mesh without texture coordinates)."""
+        return [
+            k
+            for k in self.params
+            if ".mask." in k or k.endswith(("pigment_noise", "normal_noise", ".texture"))
+        ]
+
     def values(self) -> dict:
         """Each parameter's value by key (texture files left out)."""
         return {k: p.value for k, p in self.params.items() if p.value is not None}
@@ -332,3 +341,19 @@ def material_dict(table: dict, file: Path | str = "<material>", where: str = "ma
     """The Mitsuba BSDF dict of a `[material]` table, or None when it is disabled."""
     material = build_material(table, file, where)
     return None if material is None else material.bsdf
+
+
+def check_uvs(scene, material: Material) -> None:
+    """Refuse a mesh without texture coordinates under a material that needs them."""
+    from captures.scene import ObjFile
+
+    geometry = scene.geometry
+    if isinstance(geometry, ObjFile) and not geometry.uvs:
+        needs = material.needs_uvs()
+        if needs:
+            shown = ", ".join(needs[:3]) + (", ..." if len(needs) > 3 else "")
+            raise ConfigError(
+                f"{geometry.path}: the OBJ has faces without texture coordinates, and the "
+                f"material looks up {shown} in UV space; unwrap the mesh (e.g. Blender: UV > "
+                "Smart UV Project) and export with UVs, or fit a material without masks or noise"
+            )

@@ -334,9 +334,12 @@ CASES: list[Case] = [
         ("m.obj", "zero area"),
     ),
     (
-        "obj-no-uvs",
-        obj_case("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"),
-        ("m.obj", "UVs"),
+        "obj-no-uvs-noisy-glaze",  # a plain glaze renders without UVs; its noise needs them
+        lambda d: (
+            edit(d / "render.toml", 'type = "glaze"', 'type = "glaze"\npigment_noise = 0.2'),
+            obj_case("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")(d),
+        )[-1],
+        ("m.obj", "texture coordinates", "glaze.pigment_noise", "unwrap"),
     ),
     (
         "obj-garbage",
@@ -1171,6 +1174,22 @@ def test_help_shows_bracketed_text(capsys):
 
 
 # Valid but unusual inputs ------------------------------------------------------------------------
+
+
+def test_a_mesh_without_uvs_renders_a_plain_glaze(base, tmp_path, capsys):
+    """A scanned mesh rarely has UVs: a material that looks nothing up in UV space renders (and
+    fits) on it; only masks, textures and the glaze's noise need them."""
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    (work / "m.obj").write_text("v -1 -1 0\nv 1 -1 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\n")
+    edit(work / "render.toml", 'geometry = "sphere"', 'geometry = "m.obj"')
+    code, _, stderr = run(["render", work / "render.toml", "--out", work / "o.png"], capsys)
+    assert code == 0, stderr
+    code, _, stderr = run(["synth", work / "render.toml", "--out", work / "c"], capsys)
+    assert code == 0, stderr
+    edit(work / "fit.toml", 'capture = "cap"', 'capture = "c"')
+    code, _, stderr = run(["fit", work / "fit.toml", "--out", work / "run"], capsys)
+    assert code == 0, stderr
 
 
 def test_render_keeps_every_dot_of_the_out_name(base, tmp_path, capsys):
