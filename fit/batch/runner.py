@@ -100,13 +100,20 @@ def fit_job(job: Job, cpus: int, variant: str | None, kernel_cache: str) -> dict
     entry = {"host": socket.gethostname(), "pid": os.getpid()}
     try:
         prepare_worker(cpus, variant, kernel_cache)
-        from ..commands.fit import check_output, run_fit
+        from ..commands.fit import check_output, check_resume, prepare, run_fit
         from ..config import load_fit_config
 
         cfg = load_fit_config(job.config, job.capture, job.seed)
         resume = _check_run_folder(job.out)
+        prepared = prepare(cfg)
+        if resume:
+            try:
+                check_resume(prepared, cfg, job.out)
+            except InputError as err:  # the config changed since: its checkpoint is stale
+                log.warning("fit %s starts again: %s", job.name, err)
+                resume = False
         check_output(job.out, cfg, resume, force=True)  # a failed run's leftovers are replaced
-        summary = run_fit(cfg, job.out, resume=resume)
+        summary = run_fit(cfg, job.out, resume=resume, prepared=prepared)
         entry |= summary_entry(summary) | {"status": "done"}
     except Exception as err:
         message = str(err).strip().splitlines()[0] if str(err).strip() else ""

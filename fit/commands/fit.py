@@ -146,13 +146,36 @@ def check_truth(capture: Capture, free: list[Free], path, material=None) -> None
             )
 
 
+def fit_identity(prepared: Prepared, cfg: FitConfig) -> dict:
+    """What makes a checkpoint this fit's (JSON values): the free parameters, the fitted views,
+    each phase as written, the seed."""
+    identity = {
+        "free": [f.key for f in prepared.free],
+        "views": [v.name for v in prepared.problem.capture.views],
+        "phases": [f"{p.describe()} x {p.steps} {p.options!r}" for p in cfg.phases],
+        "seed": cfg.seed,
+    }
+    return json.loads(json.dumps(identity))
+
+
 def check_resume(prepared: Prepared, cfg: FitConfig, out: Path) -> None:
-    """Refuse, before any work, a checkpoint in `out` that another fit saved."""
+    """Refuse, before any work, a checkpoint in `out` that another fit saved: other free
+    parameters, views, phases or seed (a vector of the same size would otherwise be read as
+    this fit's)."""
     checkpoint = Checkpoint(out / "checkpoint.npz")
     saved = checkpoint.load()
-    if saved is not None:
-        u = prepared.problem.unconstrained(prepared.start)
-        check_saved(saved, u, len(cfg.phases), checkpoint.path)
+    if saved is None:
+        return
+    u = prepared.problem.unconstrained(prepared.start)
+    check_saved(saved, u, len(cfg.phases), checkpoint.path)
+    theirs, ours = saved.get("identity"), fit_identity(prepared, cfg)
+    if theirs is not None and theirs != ours:
+        what = next(k for k in ours if theirs.get(k) != ours[k])
+        raise InputError(
+            f"{checkpoint.path}: was saved by a fit with other {what} (the checkpoint's "
+            f"{theirs.get(what)}, this fit's {ours[what]}); run without --resume (and with "
+            "--force) to start again"
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -263,6 +286,7 @@ def run_fit(
         Checkpoint(out / "checkpoint.npz").remove()  # an earlier single-start run's, if any
         return summary
     checkpoint = Checkpoint(out / "checkpoint.npz")
+    checkpoint.identity = fit_identity(prepared, cfg)
     try:
         with _stop_on_ctrl_c(checkpoint):
             result = run_schedule(

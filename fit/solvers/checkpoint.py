@@ -34,6 +34,9 @@ class Checkpoint:
         self.interval = interval if interval is not None else float(env or INTERVAL)
         self.latest: dict | None = None
         self.stop = False  # set (by a Ctrl-C handler) to stop at the next step
+        #: What fit this is (JSON values: its free keys, views, phases, seed), saved with every
+        #: state; a resume compares it (`fit.commands.fit.check_resume`).
+        self.identity: dict | None = None
         self._last = time.monotonic()
 
     def offer(self, state: dict) -> None:
@@ -66,6 +69,8 @@ class Checkpoint:
                 arrays[key] = np.asarray(value)
             else:
                 meta[key] = value
+        if self.identity is not None:
+            meta["identity"] = self.identity
         buffer = io.BytesIO()
         np.savez(buffer, meta=np.array(json.dumps(meta)), **arrays)
         with atomic_path(self.path) as tmp:

@@ -228,6 +228,13 @@ def test_resume_refuses_a_checkpoint_of_another_fit(tmp_path):
     assert "saved by a different fit" in out.stderr and "Traceback" not in out.stderr
     lines = [line for line in out.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("error:"), out.stderr  # no progress bars
+    # the same size of vector, saved by a fit of other free parameters: refused by its identity
+    checkpoint.latest["u_phase"] = np.zeros(3, np.float32)
+    checkpoint.identity = {"free": ["glaze.sigma"], "views": [], "phases": [], "seed": 0}
+    checkpoint.flush()
+    out = run_cli("fit", tmp_path / "fit.toml", "--out", run, "--resume", timeout=300)
+    assert out.returncode == 2, out.stderr
+    assert "saved by a fit with other free" in out.stderr and "glaze.sigma" in out.stderr
 
 
 def test_unknown_free_key_is_one_line_and_leaves_no_folder(tmp_path):
