@@ -160,6 +160,14 @@ def _like(current, values):
 GRAD_SEED_OFFSET = 0x5EED1
 
 
+#: A frozen function that records again this many times for host arguments (spp, sensor,
+#: keys) it has recorded before runs plainly from then on: a thin-lens view beside a pinhole or
+#: orthographic one in a scene made Dr.Jit re-record on every call ("dry-running the recording
+#: failed"), printing a warning per call from its 10th recording and running about 20 % slower
+#: than plain (a user's report, two 48x36 views).
+RERECORD_LIMIT = 4
+
+
 class _Frozen:
     """`fn` as a Dr.Jit frozen function, and plainly from the first recording that fails (a
     thin-lens or orthographic camera of another scene, still alive, traced unrebuilt into a
@@ -170,17 +178,34 @@ class _Frozen:
 
     def __init__(self, fn, sensors: int = 1):
         self.fn, self.frozen = fn, dr.freeze(fn, warn_after=10 * sensors)
+        self.recorded: set = set()  # the host arguments (spp, sensor, keys) of each recording
+        self.again = 0  # recordings of host arguments recorded before
 
     def __call__(self, *args):
-        if self.frozen is not None:
-            try:
-                return self.frozen(*args)
-            except RuntimeError as err:
-                if not str(err).startswith("record()"):
-                    raise
-                log.info("not frozen (%s): %s", self.fn.__name__, err.__cause__ or err)
+        if self.frozen is None:
+            return self.fn(*args)
+        before = self.frozen.n_recordings
+        try:
+            out = self.frozen(*args)
+        except RuntimeError as err:
+            if not str(err).startswith("record()"):
+                raise
+            log.info("not frozen (%s): %s", self.fn.__name__, err.__cause__ or err)
+            self.frozen = None
+            return self.fn(*args)
+        if self.frozen.n_recordings > before:
+            key = tuple(a for a in args if isinstance(a, int | str) or _names(a))
+            self.again += key in self.recorded
+            self.recorded.add(key)
+            if self.again >= RERECORD_LIMIT:
+                log.info("not frozen (%s): it records again on every call", self.fn.__name__)
                 self.frozen = None
-        return self.fn(*args)
+        return out
+
+
+def _names(value) -> bool:
+    """A tuple of strings (traverse keys): part of a frozen call's host arguments."""
+    return isinstance(value, tuple) and all(isinstance(v, str) for v in value)
 
 
 class _Group:

@@ -13,6 +13,7 @@ from captures.capture import Capture, View
 from fit.config import load_render_config
 from fit.material import build_material, resolve
 from fit.render import Renderer
+from fit.render.renderer import RERECORD_LIMIT
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -65,7 +66,7 @@ def batch_capture(kinds: list[str]) -> tuple[Capture, object]:
 @pytest.mark.parametrize(
     "kinds", [["thinlens"] * 3, ["orthographic"] * 2, ["thinlens", "orthographic", "perspective"]]
 )
-def test_a_batch_of_any_cameras_renders_frozen_and_right_beside_other_scenes(kinds):
+def test_a_batch_of_any_cameras_renders_frozen_and_right_beside_other_scenes(kinds, capfd):
     """Views of thin-lens or orthographic cameras rendered through one `batch` sensor, frozen,
     replayed wrong derivatives once other scenes were alive in the process (live perspective
     scenes: the Jacobian off by up to 220; in the full test suite, 3 runs of 3). They render one
@@ -102,7 +103,12 @@ def test_a_batch_of_any_cameras_renders_frozen_and_right_beside_other_scenes(kin
             # beside other scenes a sample's path now and then differs (float rounding at a
             # branch): measured up to 15 of 19440 entries; the wrong replays were 15-35 %
             assert mismatched.mean() < 0.005, mismatched.mean()
-    assert all(f.frozen is not None for f in (group.primal, group.reverse, group.forward))
+    passes = (group.primal, group.reverse, group.forward)
+    if len(set(kinds)) == 1:
+        assert all(f.frozen is not None for f in passes)
+    else:  # a thin-lens sensor beside other kinds records again on every call: then plain
+        assert all(f.frozen is not None or f.again >= RERECORD_LIMIT for f in passes)
+    assert "has been recorded" not in capfd.readouterr().err
 
 
 def test_a_schedule_at_two_resolutions_renders_thin_lens_views_frozen():
