@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -34,6 +35,12 @@ class Degradation:
     read: float = 0.0
     exposure_ev: float = 0.0
     base_ev: float = 0.0
+
+
+log = logging.getLogger(__name__)
+
+#: The share of clipped pixels in a view (8/16-bit formats) above which synth warns.
+CLIP_WARNING = 0.01
 
 
 def synthesize(
@@ -79,6 +86,13 @@ def synthesize(
                 image = image + std * rng.standard_normal(image.shape).astype(np.float32)
             image = np.clip(image, 0.0, None)
             name = f"view_{i:02d}.{suffix}"
+            clipped = float(np.mean(np.any(image >= 1.0, axis=-1))) if encoding != "linear" else 0
+            if clipped > CLIP_WARNING:
+                log.warning(
+                    f"{out / name}: {100 * clipped:.1f} % of its pixels clip at the format's "
+                    "white (a fit gives them no weight); lower --exposure-base (each -1 halves "
+                    "the image) until under 1 % do"
+                )
             write_image(staging / name, image)
             views.append({"image": name, "exposure_ev": ev, "camera": camera_to_table(camera)})
         text = manifest_text(

@@ -1427,3 +1427,37 @@ def test_cuda_without_a_device_is_one_line(base, tmp_path, capsys):
     assert code == 2 and not stdout and "no usable CUDA device" in stderr, stderr
     assert stderr.count("\n") == 1
     assert snapshot(work) == before
+
+
+def test_synth_warns_of_clipped_photographs(base, tmp_path, caplog):
+    """A synthetic PNG whose pixels clip (a bright light, a high exposure) is said at once, with
+    the option that fixes it (a user found most of a torus masked out only in `inspect`)."""
+    import logging
+
+    from fit.commands.synth import Degradation, synthesize
+    from fit.config import load_render_config
+
+    cfg = load_render_config(base / "render.toml")
+    with caplog.at_level(logging.WARNING):
+        synthesize(
+            cfg.scene,
+            cfg.material,
+            tmp_path / "bright",
+            2,
+            fmt="png",
+            degradation=Degradation(base_ev=6.0),
+        )
+    assert any(
+        "clip" in r.getMessage() and "--exposure-base" in r.getMessage() for r in caplog.records
+    )
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        synthesize(
+            cfg.scene,
+            cfg.material,
+            tmp_path / "dim",
+            2,
+            fmt="png",
+            degradation=Degradation(base_ev=-3.0),
+        )
+    assert not [r for r in caplog.records if "clip" in r.getMessage()]
