@@ -33,6 +33,10 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 console = Console(stderr=True)
+#: A fit's results (its table, held-out scores, the run folder) go to stdout, progress and
+#: messages to stderr: `layerfit fit CONFIG > results.txt` keeps the table. Redirected, the table
+#: is laid out 160 columns wide (rich's 80 cut its numbers short).
+results = Console(width=None if sys.stdout.isatty() else 160)
 
 VariantOption = Annotated[
     str | None,
@@ -708,11 +712,11 @@ def fit(
             fmt(summary["error"].get(key)),
             fmt(summary["error_over_std"].get(key)),
         )
-    console.print(table)
+    results.print(table)
     if summary["poorly_determined"]:
         _say("poorly determined:", "yellow", ", ".join(summary["poorly_determined"]))
     if summary["std"] is None:
-        console.print("no uncertainty: too many free components for a Jacobian (textures)")
+        results.print("no uncertainty: too many free components for a Jacobian (textures)")
     for report in summary["outcomes"]:
         if report["outcome"] in ("diverged", "failed") or report["rejected"]:
             _say(f"{report['solver']}:", "yellow", f"{report['outcome']}: {report['message']}")
@@ -721,8 +725,8 @@ def fit(
     held = [v for v in summary["views"] if v["held_out"]]
     if held:
         scores = ", ".join(f"{v['name']} {v['rmse']:.3f}" for v in held)
-        console.print(f"held-out views, relative RMSE: {scores}", highlight=False, markup=False)
-    console.print(
+        results.print(f"held-out views, relative RMSE: {scores}", highlight=False, markup=False)
+    results.print(
         f"run folder: {out} (preset.toml, summary.json, report.html)", highlight=False, markup=False
     )
 
@@ -754,7 +758,7 @@ def _print_starts(rows: list[dict]) -> None:
             f"{row['loss']:.6g}" if row["loss"] is not None else escape(f"failed: {row['error']}"),
             f"{row['wall_time_s']:.0f}",
         )
-    console.print(table)
+    results.print(table)
 
 
 @app.command()

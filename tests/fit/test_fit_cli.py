@@ -53,8 +53,8 @@ def test_fit_command_writes_a_run_folder(tmp_path):
     run = tmp_path / "result"
     out = run_cli("fit", tmp_path / "fit.toml", "--out", run, "--holdout", "1")
     assert out.returncode == 0, out.stderr
-    assert "glaze.pigment" in out.stderr and "adam+bfgs" in out.stderr
-    assert f"run folder: {run}" in out.stderr and "held-out views" in out.stderr
+    assert "glaze.pigment" in out.stdout and "adam+bfgs" in out.stdout  # results: stdout
+    assert f"run folder: {run}" in out.stdout and "held-out views" in out.stdout
     summary = json.loads((run / "summary.json").read_text())
     assert summary["truth"]["glaze.pigment"] == [0.1, 0.22, 0.55]
     np.testing.assert_allclose(summary["values"]["glaze.pigment"], [0.1, 0.22, 0.55], atol=0.02)
