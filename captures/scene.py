@@ -110,7 +110,8 @@ Light = RectLight | PointLight | DirectionalLight
 
 @dataclass(frozen=True)
 class EnvMap:
-    """An environment map (lat-long image, linear) scaled by `scale`."""
+    """An environment map (lat-long image, linear) scaled by `scale`: its top row is up (+z),
+    its centre column faces -y."""
 
     path: Path
     scale: float = 1.0

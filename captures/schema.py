@@ -394,7 +394,8 @@ class ConstantEnvSpec(StrictModel):
 
 class EnvMapSpec(StrictModel):
     type: Literal["envmap"]
-    """A lat-long environment map."""
+    """A lat-long (equirectangular) environment map: its top row is up (+z), its centre
+    column faces -y."""
     file: ExistingPath
     """The linear image, relative to the TOML file's folder."""
     scale: PositiveFloat = 1.0

@@ -142,10 +142,22 @@ def geometry_dict(scene: Scene, bsdf: mi.BSDF, emitter: dict | None = None) -> d
     return out
 
 
+#: Mitsuba's envmap has its top row towards +y; layerfit's world is z-up (cameras' `up`, the cup
+#: stands on z): a quarter turn about x puts an equirectangular map's top (its sky) at +z and its
+#: centre column towards -y (where the default cameras stand, facing +y). Without it a sky lit
+#: the object from +y (a user's report: a camera looking up saw half the sky dark).
+ENVMAP_TO_WORLD = mi.ScalarTransform4f().rotate([1.0, 0.0, 0.0], 90.0)
+
+
 def environment_dict(scene: Scene) -> dict | None:
     env = scene.environment
     if isinstance(env, EnvMap):
-        return {"type": "envmap", "filename": str(env.path), "scale": env.scale}
+        return {
+            "type": "envmap",
+            "filename": str(env.path),
+            "scale": env.scale,
+            "to_world": ENVMAP_TO_WORLD,
+        }
     if any(env):
         return {"type": "constant", "radiance": {"type": "rgb", "value": list(env)}}
     return None

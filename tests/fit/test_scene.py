@@ -224,3 +224,32 @@ def test_a_scene_of_any_scale_renders_its_object(kind, scale):
     background = np.asarray(cfg.scene.environment, np.float32)
     # the sphere (a dimmer glaze over the grey environment) covers the centre
     assert not np.allclose(image[6, 8], background, rtol=0.02)
+
+
+def test_an_environment_maps_sky_is_up(tmp_path):
+    """An equirectangular map's top row (its sky) lights from +z, world up; its centre column
+    from -y (Mitsuba's own envmap has its top towards +y)."""
+    import dataclasses
+
+    import drjit as dr
+
+    from captures.images import write_image
+    from captures.scene import EnvMap
+    from fit.render.scene import environment_dict
+
+    image = np.zeros((64, 128, 3), np.float32)
+    image[:4] = 5.0  # the top rows
+    image[28:36, 60:68] = 1.0  # the centre
+    write_image(tmp_path / "sky.exr", image)
+    sphere = load_render_config(ROOT / "configs" / "glazed-sphere.toml").scene
+    scene = dataclasses.replace(sphere, environment=EnvMap(tmp_path / "sky.exr"))
+    emitter = mi.load_dict(environment_dict(scene))
+
+    def arriving_from(direction) -> float:
+        si = dr.zeros(mi.SurfaceInteraction3f)
+        si.wi = mi.Vector3f(*(-float(c) for c in direction))
+        return float(emitter.eval(si)[0][0])
+
+    assert arriving_from([0, 0, 1]) == pytest.approx(5.0, rel=0.05)
+    assert arriving_from([0, -1, 0]) == pytest.approx(1.0, rel=0.05)
+    assert arriving_from([0, 1, 0]) == arriving_from([0, 0, -1]) == 0.0
