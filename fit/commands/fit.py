@@ -72,7 +72,8 @@ def held_out(n_views: int, n: int) -> list[int]:
         return []
     if not 0 < n < n_views:
         raise InputError(
-            f"holdout = {n}: {'negative' if n < 0 else f'leaves none of the {n_views} views'}; "
+            f"holdout = {n}: "
+            f"{'negative' if n < 0 else f'leaves none of the {n_views} view(s) in the fit'}; "
             "keep at least one view in the fit (and hold out fewer)"
         )
     picks = sorted({min(n_views - 1, max(1, round((j + 1) * n_views / (n + 1)))) for j in range(n)})
