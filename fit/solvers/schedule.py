@@ -193,6 +193,9 @@ def run_schedule(
         history, ends = list(saved["history_before"]), list(saved["ends"])
         reports = [PhaseReport(**{**r, "outcome": Outcome(r["outcome"])}) for r in saved["reports"]]
         steps = sum(r.steps for r in reports)
+        if progress:  # the phases finished before the stop show as finished
+            for k, report in enumerate(reports[:first]):
+                progress(k, phases[k].steps, report.loss)
     result = Result(problem.values(u), u, float("nan"), 0)
     for k in range(first, len(phases)):
         phase = phases[k]

@@ -792,3 +792,28 @@ def test_gauss_newton_auto_split_follows_the_residual(problem, monkeypatch):
         assert calls["vjp"] == [reverse_spp] * 2
         assert calls["render"].count(image_spp) >= 2
         assert f"image {image_spp}, reverse pass {reverse_spp}" in result.reports[0].message
+
+
+def test_a_resumed_schedule_shows_its_finished_phases(problem, tmp_path):
+    """Resumed after its first phase, a schedule reports that phase finished first (the
+    progress bars of finished phases showed 0/N)."""
+    from fit.solvers import Checkpoint
+
+    phases = (
+        Phase(solver="adam", steps=2, spp=2, lr=0.1),
+        Phase(solver="adam", steps=3, spp=2, lr=0.1),
+    )
+    start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.2, "glaze.ior": 1.3}
+
+    def stop_in_second(k, step, loss):
+        if k == 1 and step == 1:
+            raise KeyboardInterrupt
+
+    checkpoint = Checkpoint(tmp_path / "checkpoint.npz", interval=1e9)
+    with pytest.raises(KeyboardInterrupt):
+        run_schedule(problem, start, phases, 0, stop_in_second, 2, checkpoint)
+    calls = []
+    run_schedule(
+        problem, start, phases, 0, lambda *a: calls.append(a[:2]), 2, checkpoint, resume=True
+    )
+    assert calls[0] == (0, 2) and (1, 3) in calls
