@@ -160,12 +160,13 @@ def _like(current, values):
 GRAD_SEED_OFFSET = 0x5EED1
 
 
-#: A frozen function that records again this many times for host arguments (spp, sensor,
-#: keys) it has recorded before runs plainly from then on: a thin-lens view beside a pinhole or
-#: orthographic one in a scene made Dr.Jit re-record on every call ("dry-running the recording
+#: A frozen function that records more than this many times for the same host arguments (spp,
+#: sensor, keys) runs plainly from then on. Dr.Jit records a key again once or twice as it makes
+#: changing literals opaque (the cup's thin-lens sensors); a thin-lens view beside a pinhole or
+#: orthographic one in a scene made it record on every call ("dry-running the recording
 #: failed"), printing a warning per call from its 10th recording and running about 20 % slower
 #: than plain (a user's report, two 48x36 views).
-RERECORD_LIMIT = 4
+RERECORD_LIMIT = 8
 
 
 class _Frozen:
@@ -178,8 +179,7 @@ class _Frozen:
 
     def __init__(self, fn, sensors: int = 1):
         self.fn, self.frozen = fn, dr.freeze(fn, warn_after=10 * sensors)
-        self.recorded: set = set()  # the host arguments (spp, sensor, keys) of each recording
-        self.again = 0  # recordings of host arguments recorded before
+        self.recorded: dict = {}  # recordings by host arguments (spp, sensor, keys)
 
     def __call__(self, *args):
         if self.frozen is None:
@@ -195,9 +195,8 @@ class _Frozen:
             return self.fn(*args)
         if self.frozen.n_recordings > before:
             key = tuple(a for a in args if isinstance(a, int | str) or _names(a))
-            self.again += key in self.recorded
-            self.recorded.add(key)
-            if self.again >= RERECORD_LIMIT:
+            self.recorded[key] = self.recorded.get(key, 0) + 1
+            if self.recorded[key] > RERECORD_LIMIT:
                 log.info("not frozen (%s): it records again on every call", self.fn.__name__)
                 self.frozen = None
         return out
