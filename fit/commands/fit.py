@@ -307,10 +307,11 @@ def run_fit(
         history = list(state.get("history_before", [])) + list(state.get("history", []))
         partial = Result(problem.values(u), u, history[-1] if history else math.nan, 0, history)
         partial.phase_ends = list(state.get("ends", [])) + ([len(history)] if history else [])
-        wall = time.perf_counter() - began
+        wall = time.perf_counter() - began + checkpoint.elapsed_before
         _write(cfg, out, capture, held, problem, start, partial, wall, interrupted=True)
         raise Interrupted(out) from None
-    summary = _write(cfg, out, capture, held, problem, start, result, time.perf_counter() - began)
+    wall = time.perf_counter() - began + checkpoint.elapsed_before  # earlier sessions too
+    summary = _write(cfg, out, capture, held, problem, start, result, wall)
     checkpoint.remove()
     return summary
 
@@ -465,7 +466,7 @@ def _summary(cfg, capture, held, start, result, wall, panels, interrupted) -> di
                 ratio = np.where(np.isfinite(sd), error / np.maximum(sd, 1e-30), np.nan)
                 z[key] = ratio.tolist()
     return {
-        "config": str(cfg.path),
+        "config": str(Path(cfg.path).resolve()),
         "capture": str(cfg.capture),
         "interrupted": interrupted,
         "phases": [

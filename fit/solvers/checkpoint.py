@@ -37,6 +37,11 @@ class Checkpoint:
         #: What fit this is (JSON values: its free keys, views, phases, seed), saved with every
         #: state; a resume compares it (`fit.commands.fit.check_resume`).
         self.identity: dict | None = None
+        #: Seconds of work before this process (a resumed run's earlier sessions), and when this
+        #: one began: each state records their sum (`elapsed_s`), so a resumed run's wall time
+        #: is the whole run's.
+        self.elapsed_before = 0.0
+        self.began = time.monotonic()
         self._last = time.monotonic()
 
     def offer(self, state: dict) -> None:
@@ -71,11 +76,16 @@ class Checkpoint:
                 meta[key] = value
         if self.identity is not None:
             meta["identity"] = self.identity
+        meta["elapsed_s"] = self.elapsed()
         buffer = io.BytesIO()
         np.savez(buffer, meta=np.array(json.dumps(meta)), **arrays)
         with atomic_path(self.path) as tmp:
             tmp.write_bytes(buffer.getvalue())
         self._last = time.monotonic()
+
+    def elapsed(self) -> float:
+        """Seconds of work on this run so far, earlier sessions included."""
+        return self.elapsed_before + time.monotonic() - self.began
 
     def load(self) -> dict | None:
         """The saved state, or None when there is no checkpoint."""

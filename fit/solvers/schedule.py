@@ -189,6 +189,7 @@ def run_schedule(
     first = 0
     if saved is not None:
         check_saved(saved, u, len(phases), checkpoint.path)
+        checkpoint.elapsed_before = float(saved.get("elapsed_s", 0.0))
         first, u = int(saved["phase"]), np.asarray(saved["u_phase"], np.float32)
         history, ends = list(saved["history_before"]), list(saved["ends"])
         reports = [PhaseReport(**{**r, "outcome": Outcome(r["outcome"])}) for r in saved["reports"]]

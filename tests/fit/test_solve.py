@@ -796,7 +796,7 @@ def test_gauss_newton_auto_split_follows_the_residual(problem, monkeypatch):
 
 def test_a_resumed_schedule_shows_its_finished_phases(problem, tmp_path):
     """Resumed after its first phase, a schedule reports that phase finished first (the
-    progress bars of finished phases showed 0/N)."""
+    progress bars of finished phases showed 0/N) and counts the work saved before it."""
     from fit.solvers import Checkpoint
 
     phases = (
@@ -812,8 +812,10 @@ def test_a_resumed_schedule_shows_its_finished_phases(problem, tmp_path):
     checkpoint = Checkpoint(tmp_path / "checkpoint.npz", interval=1e9)
     with pytest.raises(KeyboardInterrupt):
         run_schedule(problem, start, phases, 0, stop_in_second, 2, checkpoint)
+    worked = checkpoint.elapsed()
     calls = []
-    run_schedule(
-        problem, start, phases, 0, lambda *a: calls.append(a[:2]), 2, checkpoint, resume=True
-    )
+    again = Checkpoint(tmp_path / "checkpoint.npz", interval=1e9)  # a new process's
+    run_schedule(problem, start, phases, 0, lambda *a: calls.append(a[:2]), 2, again, resume=True)
     assert calls[0] == (0, 2) and (1, 3) in calls
+    # the resumed run's clock starts from the saved work (the summary's wall time: the run's)
+    assert 0 < again.elapsed_before <= worked
