@@ -50,6 +50,7 @@ from .model import (
     by_shape,
     config_folder,
     parse_model,
+    toml_kind,
 )
 from .raw import develop, read_raw
 from .scene import Camera, Scene, bounding_sphere, sees
@@ -216,8 +217,8 @@ def load_capture(path: str | Path) -> Capture:
     if path.is_dir():
         path = path / "capture.toml"
     doc = load_toml(path, "capture manifest")
-    if "fit" in doc or "material" in doc:
-        kind = "a fit config" if "fit" in doc else "a render config"
+    kind = toml_kind(doc)
+    if kind not in ("a capture manifest", ""):
         raise CaptureError(
             f"{path}: is {kind}, not a capture manifest; give a capture (a folder holding "
             "capture.toml with [[views]], a peer scene.json or a DiLiGenT folder)"

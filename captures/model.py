@@ -263,3 +263,20 @@ def parse_model(model: type[M], data: Any, file: Path | str, where: str = "") ->
         raise CaptureError(
             f"{file}: {location}: {text}" if location else f"{file}: {text}"
         ) from None
+
+
+def toml_kind(doc: dict) -> str:
+    """What kind of layerfit file a TOML document is, from its top-level keys ("a fit config",
+    "a batch spec", "a preset", "a capture manifest", "a render config"; "" when none), for the
+    message when one kind is given where another belongs."""
+    if "fit" in doc or isinstance(doc.get("capture"), str):
+        return "a fit config"
+    if "configs" in doc:
+        return "a batch spec"
+    if "schema" in doc:
+        return "a preset"
+    if "views" in doc or "truth" in doc:
+        return "a capture manifest"
+    if "material" in doc or "render" in doc:
+        return "a render config"
+    return ""

@@ -93,13 +93,14 @@ def _interruptible(what: Callable[[], str]) -> Iterator[None]:
 def _scene_and_material(config: Path, scene: Path | None):
     """(scene, material, spp) of a render config or a preset, the scene replaced by `scene`'s."""
     from captures import CaptureError, parse_scene
+    from captures.model import toml_kind
 
     from .config import load_render_config
     from .material import check_uvs, load_preset, read_toml
 
     doc = read_toml(config)
-    if "fit" in doc or "views" in doc:
-        kind = "a fit config" if "fit" in doc else "a capture manifest"
+    kind = toml_kind(doc)
+    if kind in ("a fit config", "a batch spec", "a capture manifest"):
         raise CaptureError(
             f"{config}: is {kind}; give a render config (a material and a [scene]) or a preset "
             "with --scene SCENE.toml"
@@ -321,11 +322,8 @@ def bench(
             # a resumed run redraws its own plot (tagged by layerfit); never a user's file
             redraw = force or drawn_by_layerfit(plot)
             check_output(plot, "--out (its plot)", force=redraw, inputs=inputs)
-        parent = results.resolve().parent
-        while not parent.exists():
-            parent = parent.parent
-        if not parent.is_dir():
-            raise InputError(f"--results {results}: {parent} is a file; give a path in a folder")
+        if only in ("recovery", "grid", "versus"):  # resumed: rewritten, its cases kept
+            check_output(results, "--results", force=True)
     except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)

@@ -11,7 +11,7 @@ from typing import Annotated
 
 from pydantic import Field
 
-from captures.model import ExistingPath, PositiveInt, StrictModel, parse_model
+from captures.model import ExistingPath, PositiveInt, StrictModel, parse_model, toml_kind
 
 from ..errors import ConfigError
 from ..material import read_toml
@@ -74,8 +74,8 @@ def load_batch(path: str | Path) -> Batch:
     """A batch spec from its file; a one-line `InputError` naming the file and key."""
     path = Path(path)
     doc = read_toml(path)
-    if "fit" in doc or "material" in doc:
-        kind = "a fit config" if "fit" in doc else "a render config"
+    kind = toml_kind(doc)
+    if kind not in ("a batch spec", ""):
         raise ConfigError(
             f'{path}: is {kind}, not a batch spec; a spec lists configs = ["fit.toml", ...] '
             "(see layerfit batch --help and README, Batches)"

@@ -9,7 +9,14 @@ from typing import Any, Literal
 from pydantic import Field, field_validator, model_validator
 
 from captures import Scene, parse_scene
-from captures.model import NonNegativeInt, PositiveFloat, PositiveInt, StrictModel, parse_model
+from captures.model import (
+    NonNegativeInt,
+    PositiveFloat,
+    PositiveInt,
+    StrictModel,
+    parse_model,
+    toml_kind,
+)
 
 from ..errors import ConfigError
 from ..material import Material, load_material, read_toml
@@ -132,8 +139,8 @@ def load_fit_config(
     one-line `InputError` naming the file and key."""
     path = Path(path)
     table = read_toml(path)
-    if "fit" not in table and ("scene" in table or "views" in table):
-        kind = "a render config" if "scene" in table else "a capture manifest"
+    kind = toml_kind(table)
+    if kind not in ("a fit config", ""):
         raise ConfigError(
             f"{path}: is {kind}, not a fit config; a fit config names its capture, a "
             "[material] and a [fit] table (configs/cup-fit.toml is one)"

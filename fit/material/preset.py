@@ -30,6 +30,7 @@ import numpy as np
 import tomli_w
 
 from captures.files import atomic_path, write_text
+from captures.model import toml_kind
 
 from ..errors import ConfigError
 from .build import Material, build_material
@@ -130,12 +131,9 @@ def _clean(value):
 
 def _not_a_preset(doc: dict, schema) -> str:
     """Why a TOML document without an integer `schema` is not a preset: what it looks like."""
-    if "fit" in doc or ("capture" in doc and "material" in doc):
-        return "is a fit config, not a preset; give a preset (e.g. a run's preset.toml)"
-    if "views" in doc or "truth" in doc:
-        return "is a capture manifest, not a preset; give a preset (e.g. a run's preset.toml)"
-    if "scene" in doc or "render" in doc:
-        return "is a render config, not a preset; give a preset (e.g. a run's preset.toml)"
+    kind = toml_kind(doc)
+    if kind not in ("a preset", ""):
+        return f"is {kind}, not a preset; give a preset (e.g. a run's preset.toml)"
     if schema is None:
         return "has no schema key: not a preset; a preset starts with schema = 1"
     return f"schema = {schema!r} is not a preset version; a preset starts with schema = 1"

@@ -1018,6 +1018,11 @@ CASES: list[Case] = [
         fit_cfg('capture = "cap"', 'capture = "render.toml"'),
         ("render.toml", "not a capture manifest"),
     ),
+    (
+        "fit-capture-is-a-preset",
+        fit_cfg('capture = "cap"', 'capture = "preset.toml"'),
+        ("preset.toml", "is a preset, not a capture manifest"),
+    ),
     ("synth-fit-config", lambda d: ["synth", d / "fit.toml", "--out", d / "c"], ("fit config",)),
     (
         "export-fit-config",
