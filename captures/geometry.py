@@ -287,3 +287,86 @@ def check_obj(path: str | Path) -> tuple[int, int]:
             "line): nothing to render; check the export"
         )
     return faces, faces - faces_with_vt if counts["vt"] else faces
+
+
+# Height fields from normal maps ------------------------------------------------------------------
+
+#: The steepest slope a normal map's normal gives the height field (|dz/dx|, about 87 degrees):
+#: normals at a silhouette lie in the image plane, whose slope is infinite.
+MAX_SLOPE = 20.0
+
+
+def _integrate_slopes(p: np.ndarray, q: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Heights z on `mask` (pixels, rows downwards) whose differences between neighbouring masked
+    pixels best match the mean of their slopes `p` = dz/dx (x right) and `q` = dz/dy (y up), in
+    the least-squares sense; each connected part's mean height is 0."""
+    from scipy import sparse
+    from scipy.sparse.linalg import spsolve
+
+    index = np.full(mask.shape, -1, np.int64)
+    index[mask] = np.arange(int(mask.sum()))
+    rows, cols, values, rhs = [], [], [], []
+    # right neighbours: z[i, j+1] - z[i, j] = (p[i, j] + p[i, j+1]) / 2
+    pair = mask[:, :-1] & mask[:, 1:]
+    a, b = index[:, :-1][pair], index[:, 1:][pair]
+    rhs.append((p[:, :-1][pair] + p[:, 1:][pair]) / 2)
+    # lower neighbours (one row down is y - 1): z[i+1, j] - z[i, j] = -(q[i, j] + q[i+1, j]) / 2
+    pair_v = mask[:-1, :] & mask[1:, :]
+    c, d = index[:-1, :][pair_v], index[1:, :][pair_v]
+    rhs.append(-(q[:-1, :][pair_v] + q[1:, :][pair_v]) / 2)
+    first, second = np.concatenate([a, c]), np.concatenate([b, d])
+    n_eq, n = len(first), int(mask.sum())
+    rows = np.concatenate([np.arange(n_eq), np.arange(n_eq)])
+    cols = np.concatenate([first, second])
+    values = np.concatenate([-np.ones(n_eq), np.ones(n_eq)])
+    A = sparse.csr_matrix((values, (rows, cols)), shape=(n_eq, n))
+    # a tiny pull towards 0 fixes each part's free constant without bending it
+    normal = (A.T @ A + 1e-8 * sparse.identity(n)).tocsc()
+    z = spsolve(normal, A.T @ np.concatenate(rhs))
+    heights = np.zeros(mask.shape)
+    heights[mask] = z
+    return heights
+
+
+def normal_map_mesh(normals: np.ndarray, mask: np.ndarray) -> MeshData:
+    """The surface a normal map sees, as a height field in front of an orthographic camera.
+
+    `normals` (H, W, 3): unit normals in the camera's frame (x right, y up, z towards the
+    camera), as photometric-stereo benchmarks store them; `mask` (H, W): the object's pixels.
+    One vertex per masked pixel centre, at x = column + 0.5 - W / 2, y = H / 2 - (row + 0.5)
+    (pixels, the image centre at 0), its height integrated from the normals' slopes (least
+    squares, `MAX_SLOPE` at most), its shading normal the given one; two triangles per 2 x 2
+    block of masked pixels, facing +z. UVs: the pixel's place in the image (u right, v up).
+    Depth jumps (an occluding edge) are bridged by the integration, so the height field's cast
+    shadows are only approximate; the shading at each pixel is the given normal's."""
+    h, w = mask.shape
+    n = np.asarray(normals, np.float64)
+    nz = np.maximum(n[..., 2], 1.0 / MAX_SLOPE)
+    p = np.clip(-n[..., 0] / nz, -MAX_SLOPE, MAX_SLOPE)
+    q = np.clip(-n[..., 1] / nz, -MAX_SLOPE, MAX_SLOPE)
+    heights = _integrate_slopes(p, q, mask)
+    quad = mask[:-1, :-1] & mask[:-1, 1:] & mask[1:, :-1] & mask[1:, 1:]
+    used = np.zeros_like(mask)
+    for di in (0, 1):
+        for dj in (0, 1):
+            used[di : h - 1 + di, dj : w - 1 + dj] |= quad
+    index = np.full(mask.shape, -1, np.int64)
+    index[used] = np.arange(int(used.sum()))
+    rows, columns = np.nonzero(used)
+    positions = np.stack([columns + 0.5 - w / 2, h / 2 - (rows + 0.5), heights[rows, columns]], -1)
+    unit = n[rows, columns]
+    unit = unit / np.maximum(np.linalg.norm(unit, axis=-1, keepdims=True), 1e-12)
+    uvs = np.stack([(columns + 0.5) / w, 1.0 - (rows + 0.5) / h], -1)
+    qi, qj = np.nonzero(quad)
+    a, b = index[qi, qj], index[qi, qj + 1]  # top left, top right
+    c, d = index[qi + 1, qj], index[qi + 1, qj + 1]  # bottom left, bottom right
+    faces = np.concatenate([np.stack([a, c, d], -1), np.stack([a, d, b], -1)])
+    return MeshData(positions, faces.astype(np.uint32), unit, uvs)
+
+
+def covered_pixels(mask: np.ndarray) -> np.ndarray:
+    """The pixels of `mask` that `normal_map_mesh(..., mask)` covers whole (all eight neighbours
+    masked: the four quads around the pixel's centre exist)."""
+    from scipy.ndimage import binary_erosion
+
+    return binary_erosion(mask, np.ones((3, 3), bool), border_value=0)

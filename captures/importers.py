@@ -3,16 +3,20 @@ DiLiGenT photometric-stereo benchmark."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
 
 from .capture import Capture, View
 from .errors import CaptureError
+from .geometry import covered_pixels, normal_map_mesh
 from .images import read_image, read_linear, read_mask
 from .peer import load_peer_scene
-from .scene import Camera, DirectionalLight, Scene, Sphere
+from .scene import Camera, DirectionalLight, MeshArrays, Scene, Sphere
 from .weights import validity
+
+log = logging.getLogger(__name__)
 
 
 def peer_capture(scene_json: str | Path) -> Capture:
@@ -90,6 +94,9 @@ def diligent_capture(folder: str | Path, downscale: int = 1) -> Capture:
 
     World frame = camera frame, in pixels: the camera looks down -z from +z, the image's x to the
     right, y up; the sphere sits at z = 0.
+
+    Geometry (`diligent_geometry`): the sphere fitted to `mask.png` where the object is a ball,
+    else the height field of its `Normal_gt.mat`.
     """
     folder = Path(folder)
     names = _diligent_text(folder / "filenames.txt").split()
@@ -116,10 +123,7 @@ def diligent_capture(folder: str | Path, downscale: int = 1) -> Capture:
             )
     mask = read_mask(folder / "mask.png")
     h, w = mask.shape
-    try:
-        cx, cy, radius = fit_sphere_to_mask(mask)
-    except CaptureError as err:
-        raise CaptureError(f"{folder / 'mask.png'}: {err}; give the object's mask") from None
+    geometry, covered = diligent_geometry(folder, mask)
     camera = Camera(
         origin=(0.0, 0.0, 10.0 * max(w, h)),
         target=(0.0, 0.0, 0.0),
@@ -131,7 +135,7 @@ def diligent_capture(folder: str | Path, downscale: int = 1) -> Capture:
         ortho_width=float(w),
     )
     scene = Scene(
-        Sphere((cx - w / 2, h / 2 - cy, 0.0), radius),
+        geometry,
         (camera,),
         (),
         (0.0, 0.0, 0.0),
@@ -147,9 +151,90 @@ def diligent_capture(folder: str | Path, downscale: int = 1) -> Capture:
         image, saturated, _ = read_linear(path, "linear")
         if image.shape[:2] != (h, w):
             raise CaptureError(f"{path}: {image.shape[1]}x{image.shape[0]}, mask is {w}x{h}")
-        image, weight = validity(image / intensity.astype(np.float32), saturated, mask)
+        image, weight = validity(image / intensity.astype(np.float32), saturated, covered)
         light = DirectionalLight(tuple(-direction / np.linalg.norm(direction)), (1.0, 1.0, 1.0))
         views.append(View(path.stem, image, weight, camera, 1.0, (light,), mask))
     if not views:
         raise CaptureError(f"{folder}: none of the images in filenames.txt is present")
     return Capture(scene, views, {}, folder).downscaled(downscale)
+
+
+#: A normal map this close to the sphere fitted to its mask (median angle, degrees) is that
+#: sphere (the DiLiGenT ball: 0.66); a mask without normals must cover its fitted disc this well
+#: (intersection over union; the ball's 0.99).
+SPHERE_ANGLE_DEG, DISC_IOU = 3.0, 0.95
+
+
+def diligent_geometry(folder: Path, mask: np.ndarray):
+    """(geometry, the pixels it covers whole) of a photometric-stereo object seen along -z:
+    the analytic sphere fitted to `mask` when the object is a ball (its `Normal_gt.mat` agrees
+    with the sphere's normals, or, without one, the mask is a disc); otherwise the height field
+    of `Normal_gt.mat` (`normal_map_mesh`; its weights keep only the pixels it covers whole)."""
+    try:
+        cx, cy, radius = fit_sphere_to_mask(mask)
+    except CaptureError as err:
+        raise CaptureError(f"{folder / 'mask.png'}: {err}; give the object's mask") from None
+    h, w = mask.shape
+    sphere = Sphere((cx - w / 2, h / 2 - cy, 0.0), radius)
+    rows, columns = np.nonzero(mask)
+    x, y = (columns + 0.5 - cx) / radius, (cy - rows - 0.5) / radius
+    path = folder / "Normal_gt.mat"
+    if not path.exists():
+        yy, xx = np.mgrid[0:h, 0:w]
+        inside = (xx + 0.5 - cx) ** 2 + (yy + 0.5 - cy) ** 2 <= radius**2
+        iou = (mask & inside).sum() / max((mask | inside).sum(), 1)
+        if iou < DISC_IOU:
+            raise CaptureError(
+                f"{folder / 'mask.png'}: the object is not a ball (its mask covers {iou:.0%} of "
+                f"the disc fitted to it, a ball's {DISC_IOU:.0%} or more) and {path.name} is "
+                "missing: put the object's normal map (MATLAB v5, 'Normal_gt', H x W x 3) "
+                "beside mask.png"
+            )
+        return sphere, mask
+    normals = read_normal_map(path, mask)
+    z = np.sqrt(np.clip(1.0 - x * x - y * y, 0.0, 1.0))
+    cosine = np.sum(normals[rows, columns] * np.stack([x, y, z], -1), -1)
+    angle = float(np.degrees(np.median(np.arccos(np.clip(cosine, -1.0, 1.0)))))
+    if angle <= SPHERE_ANGLE_DEG:
+        return sphere, mask
+    data = normal_map_mesh(normals, mask)
+    log.info("%s: not a ball (median %.1f deg off the fitted sphere): a height field", path, angle)
+    return MeshArrays(data, str(path)), covered_pixels(mask)
+
+
+def read_normal_map(path: Path, mask: np.ndarray) -> np.ndarray:
+    """A photometric-stereo normal map (`Normal_gt` of a MATLAB v5 file: H x W x 3, the camera's
+    frame), unit length on `mask`."""
+    from scipy.io import loadmat
+
+    try:
+        contents = loadmat(path)
+    except NotImplementedError:
+        raise CaptureError(
+            f"{path}: a MATLAB v7.3 (HDF5) file; save it as v7 or older "
+            "(save(..., '-v7')) with the normals in 'Normal_gt'"
+        ) from None
+    except Exception as err:  # scipy raises ValueError, TypeError, OSError... for non-MAT files
+        raise CaptureError(f"{path}: not a MATLAB file ({err})") from None
+    normals = contents.get("Normal_gt")
+    if normals is None:
+        names = ", ".join(k for k in contents if not k.startswith("__")) or "none"
+        raise CaptureError(
+            f"{path}: no 'Normal_gt' array (holds: {names}); store the normals under that name"
+        )
+    if normals.ndim != 3 or normals.shape != (*mask.shape, 3):
+        raise CaptureError(
+            f"{path}: 'Normal_gt' is {'x'.join(map(str, normals.shape))}, mask.png "
+            f"{mask.shape[0]}x{mask.shape[1]}; give H x W x 3 normals of the same size"
+        )
+    normals = np.asarray(normals, np.float64)
+    length = np.linalg.norm(normals, axis=-1)
+    bad = mask & ~(np.abs(length - 1.0) < 0.1)
+    if bad.any():
+        row, column = (int(v[0]) for v in np.nonzero(bad))
+        raise CaptureError(
+            f"{path}: {int(bad.sum())} pixels of the mask have no unit normal (e.g. row {row}, "
+            f"column {column}: length {length[row, column]:.3g}); give unit normals inside "
+            "the mask"
+        )
+    return normals / np.maximum(length, 1e-12)[..., None]

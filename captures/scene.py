@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .geometry import CupShape
+from .geometry import CupShape, MeshData
 
 Vec3 = tuple[float, float, float]
 
@@ -44,7 +44,16 @@ class ObjFile:
     uvs: bool = True
 
 
-Geometry = Sphere | Cup | ObjFile
+@dataclass(frozen=True, eq=False)
+class MeshArrays:
+    """A triangle mesh held in memory (`MeshData`), e.g. the height field of a normal map;
+    `source` names where it came from (shown to the user)."""
+
+    data: MeshData
+    source: str
+
+
+Geometry = Sphere | Cup | ObjFile | MeshArrays
 
 
 # Cameras ------------------------------------------------------------------------------------------
@@ -142,6 +151,10 @@ def bounding_sphere(geometry: Geometry) -> tuple[np.ndarray, float]:
         s = geometry.shape
         reach = s.radius_top + (0.045 if s.handle else 0.0)
         return np.array([0.0, 0.0, s.height / 2]), float(np.hypot(reach, s.height / 2 + s.wall))
+    if isinstance(geometry, MeshArrays):
+        points = geometry.data.positions
+        lo, hi = np.min(points, axis=0), np.max(points, axis=0)
+        return (lo + hi) / 2, float(np.linalg.norm(hi - lo) / 2)
     points = [
         [float(x) for x in line.split()[1:4]]
         for line in Path(geometry.path).read_text(errors="replace").splitlines()

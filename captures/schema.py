@@ -480,8 +480,10 @@ def scene_to_table(scene: Scene, folder: Path | None = None) -> dict:
         geometry = {"type": "sphere", "center": list(g.center), "radius": g.radius}
     elif isinstance(g, Cup):
         geometry = {"type": "cup", **asdict(g.shape)}
-    else:
+    elif isinstance(g, ObjFile):
         geometry = {"type": "obj", "file": rel(g.path)}
+    else:
+        raise CaptureError(f"{g.source}: a mesh held in memory has no manifest entry; save an OBJ")
     lights = []
     for light in scene.lights:
         if isinstance(light, RectLight):

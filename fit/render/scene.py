@@ -7,7 +7,16 @@ import numpy as np
 
 from captures import Camera, Scene
 from captures.geometry import MeshData, cup_mesh
-from captures.scene import Cup, DirectionalLight, EnvMap, ObjFile, PointLight, RectLight, Sphere
+from captures.scene import (
+    Cup,
+    DirectionalLight,
+    EnvMap,
+    MeshArrays,
+    ObjFile,
+    PointLight,
+    RectLight,
+    Sphere,
+)
 
 from ..material import Material
 
@@ -130,6 +139,8 @@ def geometry_dict(scene: Scene, bsdf: mi.BSDF, emitter: dict | None = None) -> d
     geometry = scene.geometry
     if isinstance(geometry, Cup):
         return mesh(cup_mesh(geometry.shape), "cup", bsdf, emitter)
+    if isinstance(geometry, MeshArrays):
+        return mesh(geometry.data, "object", bsdf, emitter)
     if isinstance(geometry, Sphere):
         out = {"type": "sphere", "center": list(geometry.center), "radius": geometry.radius}
     elif isinstance(geometry, ObjFile):

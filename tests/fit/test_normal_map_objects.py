@@ -1,0 +1,182 @@
+"""Photometric-stereo folders (DiLiGenT's layout) of objects that are not balls: the geometry is
+the height field of their normal map, and renders of it match the photographs.
+
+The folders are made here: a torus (lying flat, or tilted so that its ring hides part of itself)
+rendered orthographically under distant lights, its normal map and mask from the same renderer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+mi = pytest.importorskip("mitsuba")
+
+from captures.errors import CaptureError  # noqa: E402
+from captures.geometry import MeshData  # noqa: E402
+from captures.importers import diligent_capture, fit_sphere_to_mask  # noqa: E402
+from captures.scene import Camera, MeshArrays, Sphere  # noqa: E402
+
+W, H = 96, 80
+#: Unit directions towards the lights (camera frame: x right, y up, z towards the camera).
+LIGHTS = np.array([[0.0, 0.0, 1.0], [0.5, 0.3, 0.81], [-0.45, 0.2, 0.87], [0.1, -0.55, 0.83]])
+INTENSITY = np.array([[1.0, 0.9, 0.8], [2.0, 2.0, 2.0], [1.5, 1.4, 1.6], [0.7, 0.8, 0.9]])
+BSDF = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.6, 0.35, 0.2]}}
+
+
+def torus(major: float, minor: float, tilt_deg: float, n: int = 192) -> MeshData:
+    """A torus about the z axis, tilted about x by `tilt_deg`, in pixels."""
+    u, v = np.meshgrid(np.arange(n + 1) / n, np.arange(n // 2 + 1) / (n // 2), indexing="ij")
+    phi, theta = 2 * np.pi * u, 2 * np.pi * v
+    normal = np.stack([np.cos(theta) * np.cos(phi), np.cos(theta) * np.sin(phi), np.sin(theta)])
+    position = major * np.stack([np.cos(phi), np.sin(phi), 0 * phi]) + minor * normal
+    t = np.radians(tilt_deg)
+    rotate = np.array([[1, 0, 0], [0, np.cos(t), -np.sin(t)], [0, np.sin(t), np.cos(t)]])
+    position = np.einsum("ij,jab->abi", rotate, position).reshape(-1, 3)
+    normal = np.einsum("ij,jab->abi", rotate, normal).reshape(-1, 3)
+    faces = []
+    for i in range(n):
+        for j in range(n // 2):
+            a, b = i * (n // 2 + 1) + j, (i + 1) * (n // 2 + 1) + j
+            faces += [(a, b, b + 1), (a, b + 1, a + 1)]
+    uv = np.stack([u, v], -1).reshape(-1, 2)
+    return MeshData(position, np.asarray(faces, np.uint32), normal, uv)
+
+
+def camera() -> Camera:
+    """The camera `diligent_capture` builds for a W x H folder."""
+    return Camera(
+        (0.0, 0.0, 10.0 * max(W, H)), (0, 0, 0), (0, 1, 0), 0.0, W, H, "orthographic", 0.0, None, W
+    )
+
+
+def render_truth(data: MeshData, integrator: dict, light: np.ndarray | None, spp: int):
+    from fit.render import render
+    from fit.render.scene import mesh, sensor_dict
+
+    scene = {
+        "type": "scene",
+        "integrator": integrator,
+        "sensor": sensor_dict(camera(), spp),
+        "object": mesh(data, "object", mi.load_dict(BSDF)),
+    }
+    if light is not None:
+        scene["light"] = {
+            "type": "directional",
+            "direction": (-light).tolist(),
+            "irradiance": {"type": "rgb", "value": [1.0, 1.0, 1.0]},
+        }
+    return render(mi.load_dict(scene), spp)
+
+
+def write_folder(folder, data: MeshData) -> np.ndarray:
+    """A DiLiGenT-layout folder of `data`: 16-bit linear PNGs (each scaled by its light's
+    intensity), light files, mask.png and Normal_gt.mat. Returns the normal map."""
+    import OpenImageIO as oiio
+    from scipy.io import savemat
+
+    folder.mkdir()
+    normals = render_truth(data, {"type": "aov", "aovs": "nn:sh_normal"}, None, 64)
+    length = np.linalg.norm(normals, axis=-1)
+    mask = length > 0.98  # covered whole by the object
+    normals = np.where(mask[..., None], normals / np.maximum(length, 1e-9)[..., None], 0.0)
+    savemat(folder / "Normal_gt.mat", {"Normal_gt": normals})
+    out = oiio.ImageOutput.create(str(folder / "mask.png"))
+    out.open(str(folder / "mask.png"), oiio.ImageSpec(W, H, 1, "uint8"))
+    out.write_image((mask[..., None] * 255).astype(np.uint8))  # (H, W, 1): OIIO misreads 2-D
+    out.close()
+    names = []
+    for k, (light, intensity) in enumerate(zip(LIGHTS, INTENSITY, strict=True)):
+        image = render_truth(data, {"type": "direct"}, light / np.linalg.norm(light), 64)
+        scaled = np.clip(image * intensity * 0.5, 0, 1)
+        name = f"{k:03d}.png"
+        out = oiio.ImageOutput.create(str(folder / name))
+        out.open(str(folder / name), oiio.ImageSpec(W, H, 3, "uint16"))
+        out.write_image(np.round(scaled * 65535).astype(np.uint16))
+        out.close()
+        names.append(name)
+    (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    np.savetxt(folder / "light_directions.txt", LIGHTS / np.linalg.norm(LIGHTS, axis=1)[:, None])
+    np.savetxt(folder / "light_intensities.txt", INTENSITY * 0.5)
+    return normals
+
+
+@pytest.mark.parametrize("tilt", [0.0, 70.0])
+def test_a_torus_folder_renders_like_its_photographs(tmp_path, tilt):
+    """A torus (tilted: its ring hides part of itself, depth jumps at the occluding edge) becomes
+    a height field whose renders match the photographs; the fitted-disc sphere would not."""
+    from fit.render import render
+    from fit.render.scene import scene_dict
+
+    write_folder(tmp_path / "torus", torus(27.0, 10.0, tilt))
+    capture = diligent_capture(tmp_path / "torus")
+    assert isinstance(capture.scene.geometry, MeshArrays)
+    errors = []
+    for i, view in enumerate(capture.views):
+        image = render(mi.load_dict(scene_dict(capture.scene_of(i), BSDF, 0, 64)), 64)
+        inside = view.weight > 0
+        assert inside.sum() > 0.4 * view.mask.sum()  # the pixels the height field covers whole
+        diff = (image - view.image)[inside]
+        errors.append(np.sqrt(np.mean(diff**2)) / np.sqrt(np.mean(view.image[inside] ** 2)))
+    # shading from the measured normals (measured 0.2-0.4 %); the tilted torus's cast shadows
+    # come from the integrated heights, which bridge its depth jump (one light: 6.4 %)
+    assert max(errors) < (0.02 if tilt == 0 else 0.1), errors
+    # what the loader made of every folder before: the sphere fitted to the mask (38-74 %)
+    mask = capture.scene.meta["mask"]
+    cx, cy, radius = fit_sphere_to_mask(mask)
+    sphere = Sphere((cx - W / 2, H / 2 - cy, 0.0), radius)
+    ball = replace(capture, scene=replace(capture.scene, geometry=sphere))
+    image = render(mi.load_dict(scene_dict(ball.scene_of(1), BSDF, 0, 16)), 16)
+    inside = capture.views[1].weight > 0
+    diff = (image - capture.views[1].image)[inside]
+    assert np.sqrt(np.mean(diff**2)) / np.sqrt(np.mean(capture.views[1].image[inside] ** 2)) > 0.3
+
+
+def test_a_ball_folder_stays_a_sphere(tmp_path):
+    """Normals that agree with the sphere fitted to the mask: the analytic sphere."""
+    n = 128
+    u, v = np.meshgrid(np.arange(n + 1) / n, np.arange(n // 2 + 1) / (n // 2), indexing="ij")
+    phi, theta = 2 * np.pi * u, np.pi * v
+    normal = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
+    normal = normal.transpose(1, 2, 0).reshape(-1, 3)
+    faces = []
+    for i in range(n):
+        for j in range(n // 2):
+            a, b = i * (n // 2 + 1) + j, (i + 1) * (n // 2 + 1) + j
+            faces += [(a, b, b + 1), (a, b + 1, a + 1)]
+    ball = MeshData(30.0 * normal, np.asarray(faces, np.uint32), normal, np.zeros((len(normal), 2)))
+    write_folder(tmp_path / "ball", ball)
+    capture = diligent_capture(tmp_path / "ball")
+    assert isinstance(capture.scene.geometry, Sphere)
+    assert capture.scene.geometry.radius == pytest.approx(30.0, rel=0.03)
+
+
+def test_a_shape_without_normals_is_refused(tmp_path):
+    write_folder(tmp_path / "torus", torus(27.0, 10.0, 0.0))
+    (tmp_path / "torus" / "Normal_gt.mat").unlink()
+    with pytest.raises(CaptureError, match=r"mask.png: the object is not a ball .*Normal_gt.mat"):
+        diligent_capture(tmp_path / "torus")
+
+
+@pytest.mark.parametrize(
+    "contents, message",
+    [
+        ({"normals": np.zeros((H, W, 3))}, r"no 'Normal_gt' array \(holds: normals\)"),
+        ({"Normal_gt": np.zeros((H, W))}, rf"'Normal_gt' is {H}x{W}, mask.png {H}x{W}"),
+        ({"Normal_gt": np.zeros((H, W, 3))}, r"\d+ pixels of the mask have no unit normal"),
+        (None, r"not a MATLAB file"),
+    ],
+)
+def test_bad_normal_maps_are_named(tmp_path, contents, message):
+    from scipy.io import savemat
+
+    write_folder(tmp_path / "torus", torus(27.0, 10.0, 0.0))
+    path = tmp_path / "torus" / "Normal_gt.mat"
+    if contents is None:
+        path.write_text("not a mat file")
+    else:
+        savemat(path, contents)
+    with pytest.raises(CaptureError, match=f"Normal_gt.mat: {message}"):
+        diligent_capture(tmp_path / "torus")
