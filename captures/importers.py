@@ -123,7 +123,10 @@ def diligent_capture(folder: str | Path, downscale: int = 1) -> Capture:
             )
     mask = read_mask(folder / "mask.png")
     h, w = mask.shape
-    geometry, covered = diligent_geometry(folder, mask)
+    warnings: list[str] = []
+    geometry, covered = diligent_geometry(folder, mask, warnings)
+    for message in warnings:
+        log.warning(message)
     camera = Camera(
         origin=(0.0, 0.0, 10.0 * max(w, h)),
         target=(0.0, 0.0, 0.0),
@@ -156,20 +159,23 @@ def diligent_capture(folder: str | Path, downscale: int = 1) -> Capture:
         views.append(View(path.stem, image, weight, camera, 1.0, (light,), mask))
     if not views:
         raise CaptureError(f"{folder}: none of the images in filenames.txt is present")
-    return Capture(scene, views, {}, folder).downscaled(downscale)
+    return Capture(scene, views, {}, folder, warnings).downscaled(downscale)
 
 
 #: A normal map this close to the sphere fitted to its mask (median angle, degrees) is that
 #: sphere (the DiLiGenT ball: 0.66); a mask without normals must cover its fitted disc this well
 #: (intersection over union; the ball's 0.99).
 SPHERE_ANGLE_DEG, DISC_IOU = 3.0, 0.95
+#: The largest share of a mask's pixels whose normal may be missing (left out of the fit).
+MAX_BAD_NORMALS = 0.05
 
 
-def diligent_geometry(folder: Path, mask: np.ndarray):
+def diligent_geometry(folder: Path, mask: np.ndarray, warnings: list[str]):
     """(geometry, the pixels it covers whole) of a photometric-stereo object seen along -z:
     the analytic sphere fitted to `mask` when the object is a ball (its `Normal_gt.mat` agrees
     with the sphere's normals, or, without one, the mask is a disc); otherwise the height field
-    of `Normal_gt.mat` (`normal_map_mesh`; its weights keep only the pixels it covers whole)."""
+    of `Normal_gt.mat` (`normal_map_mesh`; its weights keep only the pixels it covers whole).
+    What a user should know is appended to `warnings`."""
     try:
         cx, cy, radius = fit_sphere_to_mask(mask)
     except CaptureError as err:
@@ -191,20 +197,29 @@ def diligent_geometry(folder: Path, mask: np.ndarray):
                 "beside mask.png"
             )
         return sphere, mask
-    normals = read_normal_map(path, mask)
+    normals, bad = read_normal_map(path, mask)
+    if bad.any():
+        warnings.append(
+            f"{path}: {int(bad.sum())} pixels of the mask have no unit normal; they are left "
+            "out of the fit"
+        )
+        mask = mask & ~bad
+        rows, columns = np.nonzero(mask)
+        x, y = (columns + 0.5 - cx) / radius, (cy - rows - 0.5) / radius
     z = np.sqrt(np.clip(1.0 - x * x - y * y, 0.0, 1.0))
     cosine = np.sum(normals[rows, columns] * np.stack([x, y, z], -1), -1)
     angle = float(np.degrees(np.median(np.arccos(np.clip(cosine, -1.0, 1.0)))))
     if angle <= SPHERE_ANGLE_DEG:
-        return sphere, mask
+        return sphere, mask  # (the ball's pixels without a normal are fitted: the sphere's)
     data = normal_map_mesh(normals, mask)
     log.info("%s: not a ball (median %.1f deg off the fitted sphere): a height field", path, angle)
     return MeshArrays(data, str(path)), covered_pixels(mask)
 
 
-def read_normal_map(path: Path, mask: np.ndarray) -> np.ndarray:
+def read_normal_map(path: Path, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A photometric-stereo normal map (`Normal_gt` of a MATLAB v5 file: H x W x 3, the camera's
-    frame), unit length on `mask`."""
+    frame) made unit length, and the pixels of `mask` without a unit normal (zero there; at most
+    `MAX_BAD_NORMALS` of the mask)."""
     from scipy.io import loadmat
 
     try:
@@ -229,12 +244,12 @@ def read_normal_map(path: Path, mask: np.ndarray) -> np.ndarray:
         )
     normals = np.asarray(normals, np.float64)
     length = np.linalg.norm(normals, axis=-1)
-    bad = mask & ~(np.abs(length - 1.0) < 0.1)
-    if bad.any():
+    bad = mask & ~(np.abs(length - 1.0) < 0.1)  # NaN compares False: bad
+    if bad.sum() > MAX_BAD_NORMALS * mask.sum():
         row, column = (int(v[0]) for v in np.nonzero(bad))
         raise CaptureError(
-            f"{path}: {int(bad.sum())} pixels of the mask have no unit normal (e.g. row {row}, "
-            f"column {column}: length {length[row, column]:.3g}); give unit normals inside "
-            "the mask"
+            f"{path}: {int(bad.sum())} of the mask's {int(mask.sum())} pixels have no unit "
+            f"normal (e.g. row {row}, column {column}: length {length[row, column]:.3g}); give "
+            "unit normals inside the mask"
         )
-    return normals / np.maximum(length, 1e-12)[..., None]
+    return np.where(bad[..., None], 0.0, normals / np.maximum(length, 1e-12)[..., None]), bad

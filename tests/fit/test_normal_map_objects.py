@@ -165,7 +165,7 @@ def test_a_shape_without_normals_is_refused(tmp_path):
     [
         ({"normals": np.zeros((H, W, 3))}, r"no 'Normal_gt' array \(holds: normals\)"),
         ({"Normal_gt": np.zeros((H, W))}, rf"'Normal_gt' is {H}x{W}, mask.png {H}x{W}"),
-        ({"Normal_gt": np.zeros((H, W, 3))}, r"\d+ pixels of the mask have no unit normal"),
+        ({"Normal_gt": np.zeros((H, W, 3))}, r"\d+ of the mask's \d+ pixels have no unit normal"),
         (None, r"not a MATLAB file"),
     ],
 )
@@ -180,3 +180,18 @@ def test_bad_normal_maps_are_named(tmp_path, contents, message):
         savemat(path, contents)
     with pytest.raises(CaptureError, match=f"Normal_gt.mat: {message}"):
         diligent_capture(tmp_path / "torus")
+
+
+def test_a_few_pixels_without_normals_are_left_out(tmp_path, caplog):
+    from scipy.io import savemat
+
+    normals = write_folder(tmp_path / "torus", torus(27.0, 10.0, 0.0))
+    rows, columns = np.nonzero(np.linalg.norm(normals, axis=-1) > 0)
+    normals[rows[:20], columns[:20]] = np.nan
+    savemat(tmp_path / "torus" / "Normal_gt.mat", {"Normal_gt": normals})
+    capture = diligent_capture(tmp_path / "torus")
+    assert isinstance(capture.scene.geometry, MeshArrays)
+    assert np.isfinite(capture.scene.geometry.data.positions).all()
+    assert all(not (v.weight[rows[:20], columns[:20]] > 0).any() for v in capture.views)
+    (message,) = capture.warnings
+    assert "20 pixels of the mask have no unit normal; they are left out" in message
