@@ -11,7 +11,7 @@ import numpy as np
 from .capture import Capture, View
 from .errors import CaptureError
 from .geometry import covered_pixels, normal_map_mesh
-from .images import read_image, read_linear, read_mask
+from .images import read_linear, read_mask
 from .peer import load_peer_scene
 from .scene import Camera, DirectionalLight, MeshArrays, Scene, Sphere
 from .weights import validity
@@ -20,11 +20,23 @@ log = logging.getLogger(__name__)
 
 
 def peer_capture(scene_json: str | Path) -> Capture:
-    """The peer target (`scene.json` + its linear EXR views) as a capture with its `[truth]`."""
+    """The peer target (`scene.json` + its views) as a capture with its `[truth]`.
+
+    Views are linear radiance (EXR, HDR, PFM: floating point, as stored); an 8- or 16-bit file
+    (PNG, TIFF, JPEG) is taken as sRGB-encoded, with a warning (a renderer's display output). The
+    truth holds the material table's keys that are present (`base_color`, `specular_roughness`,
+    `ior`, `diffuse_roughness`); a missing one is a warning, not an error."""
     scene = load_peer_scene(scene_json)
-    views = []
+    views, warnings = [], []
     for camera, path in zip(scene.cameras, scene.meta["images"], strict=True):
-        image = read_image(path)[..., :3]
+        encoding = "linear" if _is_float_image(path) else "srgb"
+        image, saturated, warned = read_linear(path, encoding)
+        warnings += warned
+        if encoding == "srgb":
+            warnings.append(
+                f"{path}: an integer image; read as sRGB-encoded (a peer's views are usually "
+                "linear EXR: give those for exact radiance)"
+            )
         if image.shape[:2] != (camera.height, camera.width):
             raise CaptureError(
                 f"{path}: {image.shape[1]}x{image.shape[0]} but scene.json says "
@@ -32,16 +44,46 @@ def peer_capture(scene_json: str | Path) -> Capture:
             )
         # the object's pixels: any that differ from the constant environment (any coverage)
         mask = np.abs(image - np.asarray(scene.environment, np.float32)).sum(-1) > 1e-4
-        image, weight = validity(image)
+        image, weight = validity(image, saturated)
         views.append(View(Path(path).stem, image, weight, camera, mask=mask, mask_coverage=0.0))
-    m = scene.meta["material"]
-    truth = {
-        "glaze.pigment": list(m["base_color"]),
-        "glaze.roughness": m["specular_roughness"] ** 2,
-        "glaze.ior": m["ior"],
-        "glaze.sigma": m["diffuse_roughness"],
-    }
-    return Capture(scene, views, truth, Path(scene_json))
+    material = scene.meta["material"]
+    truth, missing = {}, []
+    for key, name, convert in (
+        ("glaze.pigment", "base_color", list),
+        ("glaze.roughness", "specular_roughness", lambda r: float(r) ** 2),
+        ("glaze.ior", "ior", float),
+        ("glaze.sigma", "diffuse_roughness", float),
+    ):
+        if name not in material:
+            missing.append(name)
+            continue
+        try:
+            truth[key] = convert(material[name])
+        except (TypeError, ValueError):
+            raise CaptureError(
+                f"{scene_json}: material.{name} = {material[name]!r} is not a number"
+            ) from None
+    if missing:
+        warnings.append(
+            f"{scene_json}: the material table has no {', '.join(missing)}: those parameters "
+            "have no truth to score against"
+        )
+    for message in warnings:
+        log.warning(message)
+    return Capture(scene, views, truth, Path(scene_json), warnings)
+
+
+def _is_float_image(path: Path) -> bool:
+    """Whether an image file stores floating-point values (linear radiance)."""
+    import OpenImageIO as oiio
+
+    buf = oiio.ImageInput.open(str(path)) if Path(path).is_file() else None
+    if buf is None:
+        return True  # missing or unreadable: `read_linear` names the problem
+    try:
+        return buf.spec().format.basetype in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE)
+    finally:
+        buf.close()
 
 
 def fit_sphere_to_mask(mask: np.ndarray) -> tuple[float, float, float]:

@@ -336,3 +336,56 @@ def test_unknown_key(tmp_path):
     assert "views[0].exposure: unknown key; known: image, mask, exposure_ev, gain, camera" in bad(
         tmp_path, views=[{"image": "v0.exr", "exposure": 1.0, "camera": CAMERA}]
     )
+
+
+def _peer_folder(folder: Path, image_name: str, material: dict) -> Path:
+    """A one-view peer target: scene.json, a tetrahedron mesh and the view's file name."""
+    import json
+
+    folder.mkdir()
+    (folder / "mesh.obj").write_text(
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
+    )
+    doc = {
+        "mesh": "mesh.obj",
+        "views": [
+            {
+                "image": image_name,
+                "origin": [3, -3, 2],
+                "target": [0, 0, 0],
+                "up": [0, 0, 1],
+                "fov_x_deg": 40,
+                "width": 8,
+                "height": 6,
+            }
+        ],
+        "lights": [],
+        "environment_radiance_rgb": [0.0, 0.0, 0.0],
+        "material": material,
+    }
+    path = folder / "scene.json"
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def test_a_peer_target_in_png_is_decoded_as_srgb(tmp_path):
+    """A peer's views given as 16-bit PNG (a display output) are sRGB-decoded, with a warning;
+    read as stored they were 2x too bright in the mid-tones."""
+    from captures.images import srgb_decode
+
+    path = _peer_folder(tmp_path / "peer", "view_00.png", {"base_color": [0.5, 0.4, 0.3]})
+    write_image(tmp_path / "peer" / "view_00.png", np.full((6, 8, 3), 0.2, np.float32))
+    encoded = read_linear(tmp_path / "peer" / "view_00.png", "linear")[0]  # the file's codes
+    capture = peer_capture(path)
+    np.testing.assert_allclose(capture.views[0].image, srgb_decode(encoded), rtol=1e-5)
+    assert any("read as sRGB-encoded" in w for w in capture.warnings)
+
+
+def test_a_peer_material_table_may_lack_keys(tmp_path):
+    path = _peer_folder(tmp_path / "peer", "view_00.exr", {"base_color": [0.5, 0.4, 0.3]})
+    write_image(tmp_path / "peer" / "view_00.exr", np.full((6, 8, 3), 0.2, np.float32))
+    capture = peer_capture(path)
+    assert capture.truth == {"glaze.pigment": [0.5, 0.4, 0.3]}
+    (warning,) = capture.warnings
+    assert "no specular_roughness, ior, diffuse_roughness" in warning
+    np.testing.assert_allclose(capture.views[0].image, 0.2, rtol=1e-3)  # EXR: linear as stored
