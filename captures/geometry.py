@@ -305,7 +305,7 @@ def _integrate_slopes(p: np.ndarray, q: np.ndarray, mask: np.ndarray) -> np.ndar
 
     index = np.full(mask.shape, -1, np.int64)
     index[mask] = np.arange(int(mask.sum()))
-    rows, cols, values, rhs = [], [], [], []
+    rhs = []
     # right neighbours: z[i, j+1] - z[i, j] = (p[i, j] + p[i, j+1]) / 2
     pair = mask[:, :-1] & mask[:, 1:]
     a, b = index[:, :-1][pair], index[:, 1:][pair]
