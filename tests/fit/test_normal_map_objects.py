@@ -195,3 +195,25 @@ def test_a_few_pixels_without_normals_are_left_out(tmp_path, caplog):
     assert all(not (v.weight[rows[:20], columns[:20]] > 0).any() for v in capture.views)
     (message,) = capture.warnings
     assert "20 pixels of the mask have no unit normal; they are left out" in message
+
+
+def test_a_torus_folder_fits_its_reflectance(tmp_path):
+    """`layerfit fit` on the tilted torus's folder (a height field, lights normalised by their
+    intensities, downscaled by 2) recovers the Lambertian reflectance it was rendered with."""
+    import json
+
+    from cli_run import run_cli
+
+    write_folder(tmp_path / "torus", torus(27.0, 10.0, 70.0))
+    (tmp_path / "fit.toml").write_text(
+        f'capture = "{(tmp_path / "torus").as_posix()}"\n'
+        '[material]\ntype = "oren_nayar"\nreflectance = [0.5, 0.5, 0.5]\nsigma = 0.0\n'
+        '[fit]\nfree = ["oren_nayar.reflectance"]\ndownscale = 2\nuncertainty_spp = 16\n'
+        '[[fit.phases]]\nsolver = "adam"\nsteps = 100\nspp = 8\nlr = 0.1\n'
+    )
+    out = run_cli("fit", tmp_path / "fit.toml", "--out", tmp_path / "run")
+    assert out.returncode == 0, out.stderr
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    np.testing.assert_allclose(
+        summary["values"]["oren_nayar.reflectance"], [0.6, 0.35, 0.2], atol=0.02
+    )
