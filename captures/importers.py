@@ -25,7 +25,8 @@ def peer_capture(scene_json: str | Path) -> Capture:
     Views are linear radiance (EXR, HDR, PFM: floating point, as stored); an 8- or 16-bit file
     (PNG, TIFF, JPEG) is taken as sRGB-encoded, with a warning (a renderer's display output). The
     truth holds the material table's keys that are present (`base_color`, `specular_roughness`,
-    `ior`, `diffuse_roughness`); a missing one is a warning, not an error."""
+    `ior`, `diffuse_roughness`); a missing one is a warning, not an error. A diffuse roughness
+    above 0 is Cycles' EON roughness, not the glaze's sigma: no truth for sigma then."""
     scene = load_peer_scene(scene_json)
     views, warnings = [], []
     for camera, path in zip(scene.cameras, scene.meta["images"], strict=True):
@@ -63,6 +64,16 @@ def peer_capture(scene_json: str | Path) -> Capture:
             raise CaptureError(
                 f"{scene_json}: material.{name} = {material[name]!r} is not a number"
             ) from None
+    if truth.get("glaze.sigma", 0.0) > 0:
+        # Cycles' diffuse roughness is the roughness of Fujii's improved Oren-Nayar with the
+        # OpenPBR multiple-scattering term (EON), a number in [0, 1]; the glaze's sigma is the
+        # qualitative Oren-Nayar's facet slope in radians: not the same parameter
+        del truth["glaze.sigma"]
+        warnings.append(
+            f"{scene_json}: material.diffuse_roughness = {material['diffuse_roughness']} is "
+            "Cycles' (EON) roughness, not the glaze's Oren-Nayar sigma (radians): glaze.sigma "
+            "has no truth here, and base_color is scored against a slightly different diffuse lobe"
+        )
     if missing:
         warnings.append(
             f"{scene_json}: the material table has no {', '.join(missing)}: those parameters "
