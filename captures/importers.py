@@ -11,7 +11,7 @@ import numpy as np
 from .capture import Capture, View
 from .errors import CaptureError
 from .geometry import covered_pixels, normal_map_mesh
-from .images import read_linear, read_mask
+from .images import read_image, read_linear, read_mask
 from .peer import load_peer_scene
 from .scene import Camera, DirectionalLight, MeshArrays, Scene, Sphere
 from .weights import validity
@@ -238,6 +238,8 @@ def diligent_geometry(folder: Path, mask: np.ndarray, warnings: list[str]):
     rows, columns = np.nonzero(mask)
     x, y = (columns + 0.5 - cx) / radius, (cy - rows - 0.5) / radius
     path = folder / "Normal_gt.mat"
+    if not path.exists() and (folder / "Normal_gt.png").exists():
+        path = folder / "Normal_gt.png"
     if not path.exists():
         yy, xx = np.mgrid[0:h, 0:w]
         inside = (xx + 0.5 - cx) ** 2 + (yy + 0.5 - cy) ** 2 <= radius**2
@@ -270,9 +272,16 @@ def diligent_geometry(folder: Path, mask: np.ndarray, warnings: list[str]):
 
 
 def read_normal_map(path: Path, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A photometric-stereo normal map (`Normal_gt` of a MATLAB v5 file: H x W x 3, the camera's
-    frame) made unit length, and the pixels of `mask` without a unit normal (zero there; at most
-    `MAX_BAD_NORMALS` of the mask)."""
+    """A photometric-stereo normal map (H x W x 3, the camera's frame) made unit length, and the
+    pixels of `mask` without a unit normal (zero there; at most `MAX_BAD_NORMALS` of the mask).
+
+    From a MATLAB v5 file (`Normal_gt`, or its one H x W x 3 array under another name), or from
+    an image storing `(n + 1) / 2` (DiLiGenT's `Normal_gt.png`, 8 or 16 bits, not colour-coded)."""
+    if path.suffix.lower() != ".mat":
+        stored = read_image(path)
+        if stored.shape[2] < 3:
+            raise CaptureError(f"{path}: {stored.shape[2]} channel(s); a normal map needs 3")
+        return _unit_normals(path, stored[..., :3] * 2.0 - 1.0, mask)
     from scipy.io import loadmat
 
     try:
@@ -285,16 +294,25 @@ def read_normal_map(path: Path, mask: np.ndarray) -> tuple[np.ndarray, np.ndarra
     except Exception as err:  # scipy raises ValueError, TypeError, OSError... for non-MAT files
         raise CaptureError(f"{path}: not a MATLAB file ({err})") from None
     normals = contents.get("Normal_gt")
+    arrays = {k: v for k, v in contents.items() if not k.startswith("__")}
     if normals is None:
-        names = ", ".join(k for k in contents if not k.startswith("__")) or "none"
-        raise CaptureError(
-            f"{path}: no 'Normal_gt' array (holds: {names}); store the normals under that name"
-        )
+        shaped = [v for v in arrays.values() if getattr(v, "shape", None) == (*mask.shape, 3)]
+        if len(shaped) != 1:
+            names = ", ".join(arrays) or "none"
+            raise CaptureError(
+                f"{path}: no 'Normal_gt' array (holds: {names}); store the normals under that name"
+            )
+        normals = shaped[0]
     if normals.ndim != 3 or normals.shape != (*mask.shape, 3):
         raise CaptureError(
             f"{path}: 'Normal_gt' is {'x'.join(map(str, normals.shape))}, mask.png "
             f"{mask.shape[0]}x{mask.shape[1]}; give H x W x 3 normals of the same size"
         )
+    return _unit_normals(path, normals, mask)
+
+
+def _unit_normals(path: Path, normals, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`read_normal_map`'s result from the stored normals."""
     normals = np.asarray(normals, np.float64)
     length = np.linalg.norm(normals, axis=-1)
     bad = mask & ~(np.abs(length - 1.0) < 0.1)  # NaN compares False: bad

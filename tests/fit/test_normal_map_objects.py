@@ -163,7 +163,7 @@ def test_a_shape_without_normals_is_refused(tmp_path):
 @pytest.mark.parametrize(
     "contents, message",
     [
-        ({"normals": np.zeros((H, W, 3))}, r"no 'Normal_gt' array \(holds: normals\)"),
+        ({"normals": np.zeros((H, W))}, r"no 'Normal_gt' array \(holds: normals\)"),
         ({"Normal_gt": np.zeros((H, W))}, rf"'Normal_gt' is {H}x{W}, mask.png {H}x{W}"),
         ({"Normal_gt": np.zeros((H, W, 3))}, r"\d+ of the mask's \d+ pixels have no unit normal"),
         (None, r"not a MATLAB file"),
@@ -217,3 +217,27 @@ def test_a_torus_folder_fits_its_reflectance(tmp_path):
     np.testing.assert_allclose(
         summary["values"]["oren_nayar.reflectance"], [0.6, 0.35, 0.2], atol=0.02
     )
+
+
+@pytest.mark.parametrize("form", ["renamed", "png"])
+def test_normals_under_another_name_or_as_png(tmp_path, form):
+    """The .mat's one H x W x 3 array under another name, or DiLiGenT's Normal_gt.png
+    ((n + 1) / 2, 16 bits) when there is no .mat: the same height field."""
+    import OpenImageIO as oiio
+    from scipy.io import savemat
+
+    normals = write_folder(tmp_path / "torus", torus(27.0, 10.0, 0.0))
+    reference = diligent_capture(tmp_path / "torus").scene.geometry.data
+    (tmp_path / "torus" / "Normal_gt.mat").unlink()
+    if form == "renamed":
+        savemat(tmp_path / "torus" / "Normal_gt.mat", {"N": normals, "other": np.zeros(3)})
+    else:
+        path = str(tmp_path / "torus" / "Normal_gt.png")
+        out = oiio.ImageOutput.create(path)
+        out.open(path, oiio.ImageSpec(W, H, 3, "uint16"))
+        out.write_image(np.round((normals + 1) / 2 * 65535).astype(np.uint16))
+        out.close()
+    data = diligent_capture(tmp_path / "torus").scene.geometry.data
+    assert data.positions.shape == reference.positions.shape
+    np.testing.assert_allclose(data.normals, reference.normals, atol=1e-3)
+    np.testing.assert_allclose(data.positions, reference.positions, atol=0.05)
