@@ -11,7 +11,7 @@ import numpy as np
 from .capture import Capture, View
 from .errors import CaptureError
 from .geometry import covered_pixels, normal_map_mesh
-from .images import read_image, read_linear, read_mask
+from .images import read_image, read_linear, read_mask, srgb_encode
 from .peer import load_peer_scene
 from .scene import Camera, DirectionalLight, MeshArrays, Scene, Sphere
 from .weights import validity
@@ -30,7 +30,8 @@ def peer_capture(scene_json: str | Path) -> Capture:
     scene = load_peer_scene(scene_json)
     views, warnings = [], []
     for camera, path in zip(scene.cameras, scene.meta["images"], strict=True):
-        encoding = "linear" if _is_float_image(path) else "srgb"
+        levels = _integer_levels(path)
+        encoding = "linear" if levels is None else "srgb"
         image, saturated, warned = read_linear(path, encoding)
         warnings += warned
         if encoding == "srgb":
@@ -43,27 +44,46 @@ def peer_capture(scene_json: str | Path) -> Capture:
                 f"{path}: {image.shape[1]}x{image.shape[0]} but scene.json says "
                 f"{camera.width}x{camera.height}"
             )
-        # the object's pixels: any that differ from the constant environment (any coverage)
-        mask = np.abs(image - np.asarray(scene.environment, np.float32)).sum(-1) > 1e-4
+        # the object's pixels: any that differ from the constant environment (any coverage), by
+        # more than a code value of an integer file (its background varies by its rounding)
+        environment = np.asarray(scene.environment, np.float32)
+        if levels is None:
+            mask = np.abs(image - environment).sum(-1) > 1e-4
+        else:
+            codes = np.abs(srgb_encode(image) - srgb_encode(environment)) * levels
+            mask = codes.max(-1) > 1.5
         image, weight = validity(image, saturated)
         views.append(View(Path(path).stem, image, weight, camera, mask=mask, mask_coverage=0.0))
     material = scene.meta["material"]
+    if not isinstance(material, dict):
+        raise CaptureError(
+            f"{scene_json}: material is {type(material).__name__}; give a table of its values"
+        )
     truth, missing = {}, []
-    for key, name, convert in (
-        ("glaze.pigment", "base_color", list),
-        ("glaze.roughness", "specular_roughness", lambda r: float(r) ** 2),
-        ("glaze.ior", "ior", float),
-        ("glaze.sigma", "diffuse_roughness", float),
+    for key, name, size, low, high in (
+        ("glaze.pigment", "base_color", 3, 0.0, 1.0),
+        ("glaze.roughness", "specular_roughness", 1, 0.0, 1.0),
+        ("glaze.ior", "ior", 1, 1.0, 10.0),
+        ("glaze.sigma", "diffuse_roughness", 1, 0.0, 1.0),
     ):
         if name not in material:
             missing.append(name)
             continue
-        try:
-            truth[key] = convert(material[name])
-        except (TypeError, ValueError):
+        value = material[name]
+        values = value if isinstance(value, list) else [value]
+        if not (
+            len(values) == size
+            and all(isinstance(v, int | float) and not isinstance(v, bool) for v in values)
+            and all(low <= v <= high for v in values)
+        ):
+            what = f"{size} numbers" if size > 1 else "a number"
             raise CaptureError(
-                f"{scene_json}: material.{name} = {material[name]!r} is not a number"
-            ) from None
+                f"{scene_json}: material.{name} = {value!r}; give {what} in [{low:g}, {high:g}]"
+            )
+        floats = [float(v) for v in values]
+        if name == "specular_roughness":  # Cycles' roughness r: Beckmann alpha = r^2
+            floats = [floats[0] ** 2]
+        truth[key] = floats if size > 1 else floats[0]
     if truth.get("glaze.sigma", 0.0) > 0:
         # Cycles' diffuse roughness is the roughness of Fujii's improved Oren-Nayar with the
         # OpenPBR multiple-scattering term (EON), a number in [0, 1]; the glaze's sigma is the
@@ -84,17 +104,19 @@ def peer_capture(scene_json: str | Path) -> Capture:
     return Capture(scene, views, truth, Path(scene_json), warnings)
 
 
-def _is_float_image(path: Path) -> bool:
-    """Whether an image file stores floating-point values (linear radiance)."""
+def _integer_levels(path: Path) -> int | None:
+    """The top code of an integer image file (255, 65535, ...), None for floating point (and for
+    a file OpenImageIO cannot open: `read_linear` names the problem)."""
     import OpenImageIO as oiio
 
     buf = oiio.ImageInput.open(str(path)) if Path(path).is_file() else None
     if buf is None:
-        return True  # missing or unreadable: `read_linear` names the problem
+        return None
     try:
-        return buf.spec().format.basetype in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE)
+        kind = buf.spec().format.basetype
     finally:
         buf.close()
+    return {oiio.UINT8: 255, oiio.UINT16: 65535, oiio.UINT32: 2**32 - 1}.get(kind)
 
 
 def fit_sphere_to_mask(mask: np.ndarray) -> tuple[float, float, float]:
@@ -248,16 +270,14 @@ def diligent_geometry(folder: Path, mask: np.ndarray, warnings: list[str]):
             raise CaptureError(
                 f"{folder / 'mask.png'}: the object is not a ball (its mask covers {iou:.0%} of "
                 f"the disc fitted to it, a ball's {DISC_IOU:.0%} or more) and {path.name} is "
-                "missing: put the object's normal map (MATLAB v5, 'Normal_gt', H x W x 3) "
-                "beside mask.png"
+                "missing: put the object's normal map beside mask.png (MATLAB v5, 'Normal_gt', "
+                "H x W x 3, or Normal_gt.png storing (n + 1) / 2)"
             )
         return sphere, mask
     normals, bad = read_normal_map(path, mask)
+    check_orientation(path, normals, mask, ~bad)
+    full = mask
     if bad.any():
-        warnings.append(
-            f"{path}: {int(bad.sum())} pixels of the mask have no unit normal; they are left "
-            "out of the fit"
-        )
         mask = mask & ~bad
         rows, columns = np.nonzero(mask)
         x, y = (columns + 0.5 - cx) / radius, (cy - rows - 0.5) / radius
@@ -265,10 +285,62 @@ def diligent_geometry(folder: Path, mask: np.ndarray, warnings: list[str]):
     cosine = np.sum(normals[rows, columns] * np.stack([x, y, z], -1), -1)
     angle = float(np.degrees(np.median(np.arccos(np.clip(cosine, -1.0, 1.0)))))
     if angle <= SPHERE_ANGLE_DEG:
-        return sphere, mask  # (the ball's pixels without a normal are fitted: the sphere's)
-    data = normal_map_mesh(normals, mask)
-    log.info("%s: not a ball (median %.1f deg off the fitted sphere): a height field", path, angle)
-    return MeshArrays(data, str(path)), covered_pixels(mask)
+        return sphere, full  # the sphere's own normals: pixels without a stored one fit too
+    covered = covered_pixels(mask)
+    if covered.sum() < MIN_COVERED:
+        raise CaptureError(
+            f"{folder / 'mask.png'}: the object is not a ball (its normals {angle:.0f} deg off the "
+            f"sphere fitted to the mask) and too thin for a height field: {int(covered.sum())} "
+            f"pixels have all eight neighbours in the mask, {MIN_COVERED} are needed; give a "
+            "larger image of it"
+        )
+    lost = int(full.sum() - covered.sum())
+    warnings.append(
+        f"{path}: not a ball (its normals a median {angle:.0f} deg off the sphere fitted to the "
+        f"mask): fitted as the height field of the normal map, on the {int(covered.sum())} mask "
+        f"pixels it covers whole ({lost} at the mask's edge"
+        + (f" or next to the {int(bad.sum())} without a unit normal" if bad.any() else "")
+        + " left out)"
+    )
+    return MeshArrays(normal_map_mesh(normals, mask), str(path)), covered
+
+
+#: The fewest pixels a height field must cover whole to be fitted.
+MIN_COVERED = 16
+
+
+def check_orientation(path: Path, normals: np.ndarray, mask: np.ndarray, valid: np.ndarray) -> None:
+    """Refuse a normal map in another convention than the camera frame (x right, y up, z
+    towards the camera): normals that face away from the camera, or that point into the object
+    along its silhouette (where true normals point out of the mask: an axis flipped, channels
+    swapped). Only pixels with a `valid` normal are judged; the outline is `mask`'s."""
+    away = mask & valid & (normals[..., 2] < -0.05)
+    if away.sum() > 0.05 * mask.sum():
+        raise CaptureError(
+            f"{path}: {away.sum() / mask.sum():.0%} of the mask's normals face away from the "
+            "camera (negative z); store them in the camera's frame: x right, y up, z towards "
+            "the camera"
+        )
+    from scipy.ndimage import binary_erosion, gaussian_filter
+
+    edge = mask & ~binary_erosion(mask, np.ones((3, 3), bool), border_value=1)
+    edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = False  # image border: no silhouette
+    smooth = gaussian_filter(mask.astype(np.float64), 2.0)
+    d_row, d_column = np.gradient(smooth)
+    out_x, out_y = -d_column, d_row  # out of the mask, in the camera frame (rows go down)
+    slanted = edge & valid & (np.hypot(normals[..., 0], normals[..., 1]) > 0.3)
+    slanted &= np.hypot(out_x, out_y) > 1e-6
+    if slanted.sum() < 20:
+        return  # too little silhouette to judge
+    agree = normals[..., 0] * out_x + normals[..., 1] * out_y > 0
+    share = float(agree[slanted].mean())
+    if share < 0.8:
+        raise CaptureError(
+            f"{path}: along the mask's outline only {share:.0%} of the normals point out of the "
+            "object (a silhouette's normals all do): an axis is flipped or the channels are "
+            "swapped; store them in the camera's frame: x right, y up, z towards the camera "
+            "(in a PNG: (n + 1) / 2 as R, G, B)"
+        )
 
 
 def read_normal_map(path: Path, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -281,6 +353,11 @@ def read_normal_map(path: Path, mask: np.ndarray) -> tuple[np.ndarray, np.ndarra
         stored = read_image(path)
         if stored.shape[2] < 3:
             raise CaptureError(f"{path}: {stored.shape[2]} channel(s); a normal map needs 3")
+        if stored.shape[:2] != mask.shape:
+            raise CaptureError(
+                f"{path}: {stored.shape[1]}x{stored.shape[0]}, mask.png "
+                f"{mask.shape[1]}x{mask.shape[0]}; give normals of the mask's size"
+            )
         return _unit_normals(path, stored[..., :3] * 2.0 - 1.0, mask)
     from scipy.io import loadmat
 
@@ -291,6 +368,8 @@ def read_normal_map(path: Path, mask: np.ndarray) -> tuple[np.ndarray, np.ndarra
             f"{path}: a MATLAB v7.3 (HDF5) file; save it as v7 or older "
             "(save(..., '-v7')) with the normals in 'Normal_gt'"
         ) from None
+    except IsADirectoryError:
+        raise CaptureError(f"{path}: is a folder; give the normal map's file") from None
     except Exception as err:  # scipy raises ValueError, TypeError, OSError... for non-MAT files
         raise CaptureError(f"{path}: not a MATLAB file ({err})") from None
     normals = contents.get("Normal_gt")
@@ -313,9 +392,13 @@ def read_normal_map(path: Path, mask: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 def _unit_normals(path: Path, normals, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`read_normal_map`'s result from the stored normals."""
+    if np.iscomplexobj(normals) or not np.issubdtype(np.asarray(normals).dtype, np.number):
+        raise CaptureError(f"{path}: the normals are not real numbers; store floats")
     normals = np.asarray(normals, np.float64)
     length = np.linalg.norm(normals, axis=-1)
     bad = mask & ~(np.abs(length - 1.0) < 0.1)  # NaN compares False: bad
+    if bad.any():
+        log.info("%s: %d mask pixels without a unit normal", path, int(bad.sum()))
     if bad.sum() > MAX_BAD_NORMALS * mask.sum():
         row, column = (int(v[0]) for v in np.nonzero(bad))
         raise CaptureError(

@@ -403,3 +403,43 @@ def test_a_peer_diffuse_roughness_is_not_the_glaze_sigma(tmp_path):
     capture = peer_capture(rough)
     assert "glaze.sigma" not in capture.truth and capture.truth["glaze.ior"] == 1.5
     assert any("Cycles' (EON) roughness" in w for w in capture.warnings)
+
+
+def test_an_8_bit_peer_view_masks_only_the_object(tmp_path):
+    """In an 8-bit view the constant background varies by its rounding: the object's mask must
+    not take it for the object (IoU 0.30-0.34 on a peer sphere before)."""
+    path = _peer_folder(tmp_path / "peer", "view_00.png", {"base_color": [0.5, 0.4, 0.3]})
+    image = np.full((6, 8, 3), 0.05, np.float32)  # the environment below, as rounded to 8 bits
+    image[2:4, 3:5] = 0.4  # the object
+    import json
+
+    doc = json.loads(path.read_text())
+    doc["environment_radiance_rgb"] = [0.0503, 0.0497, 0.05]  # not exactly a code value
+    path.write_text(json.dumps(doc))
+    import OpenImageIO as oiio
+
+    from captures.images import srgb_encode
+
+    out = oiio.ImageOutput.create(str(tmp_path / "peer" / "view_00.png"))
+    out.open(str(tmp_path / "peer" / "view_00.png"), oiio.ImageSpec(8, 6, 3, "uint8"))
+    out.write_image(np.round(srgb_encode(image) * 255).astype(np.uint8))
+    out.close()
+    mask = peer_capture(path).views[0].mask
+    assert mask.sum() == 4 and mask[2:4, 3:5].all()
+
+
+@pytest.mark.parametrize(
+    "material, message",
+    [
+        ({"base_color": 0.3}, r"material.base_color = 0.3; give 3 numbers in \[0, 1\]"),
+        ({"base_color": "blue"}, r"material.base_color = 'blue'; give 3 numbers"),
+        ({"ior": True}, r"material.ior = True; give a number in \[1, 10\]"),
+        ({"diffuse_roughness": -0.2}, r"material.diffuse_roughness = -0.2; give a number"),
+        ([1, 2], r"material is list; give a table of its values"),
+    ],
+)
+def test_a_peer_material_table_with_bad_values_is_named(tmp_path, material, message):
+    path = _peer_folder(tmp_path / "peer", "view_00.exr", material)
+    write_image(tmp_path / "peer" / "view_00.exr", np.full((6, 8, 3), 0.2, np.float32))
+    with pytest.raises(CaptureError, match=message):
+        peer_capture(path)

@@ -194,7 +194,7 @@ def test_a_few_pixels_without_normals_are_left_out(tmp_path, caplog):
     assert np.isfinite(capture.scene.geometry.data.positions).all()
     assert all(not (v.weight[rows[:20], columns[:20]] > 0).any() for v in capture.views)
     (message,) = capture.warnings
-    assert "20 pixels of the mask have no unit normal; they are left out" in message
+    assert "fitted as the height field" in message and "next to the 20 without a unit" in message
 
 
 def test_a_torus_folder_fits_its_reflectance(tmp_path):
@@ -241,3 +241,46 @@ def test_normals_under_another_name_or_as_png(tmp_path, form):
     assert data.positions.shape == reference.positions.shape
     np.testing.assert_allclose(data.normals, reference.normals, atol=1e-3)
     np.testing.assert_allclose(data.positions, reference.positions, atol=0.05)
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda n: n * [1, -1, 1], r"only \d+% of the normals point out of the object"),
+        (lambda n: n[..., ::-1], r"only \d+% of the normals point out|face away"),
+        (lambda n: n * [1, 1, -1], r"\d+% of the mask's normals face away from the camera"),
+    ],
+    ids=["y flipped", "channels swapped", "z flipped"],
+)
+def test_normals_in_another_convention_are_refused(tmp_path, change, message):
+    """A normal map with an axis flipped or its channels swapped (silently a wrong height field
+    before: held-out error 0.15-0.99 on the ball against 0.06-0.08) is refused."""
+    from scipy.io import savemat
+
+    normals = write_folder(tmp_path / "torus", torus(27.0, 10.0, 0.0))
+    savemat(tmp_path / "torus" / "Normal_gt.mat", {"Normal_gt": change(normals)})
+    with pytest.raises(CaptureError, match=message):
+        diligent_capture(tmp_path / "torus")
+
+
+def test_an_object_too_thin_for_a_height_field_is_refused(tmp_path):
+    """A torus whose tube is under four pixels wide has (almost) no pixel with all eight
+    neighbours inside: nothing to fit (an empty mesh crashed the renderer before; a thin one
+    fitted nothing, silently)."""
+    write_folder(tmp_path / "torus", torus(27.0, 1.8, 0.0))
+    with pytest.raises(CaptureError, match=r"mask.png: .*too thin for a height field: \d+ pixels"):
+        diligent_capture(tmp_path / "torus")
+
+
+def test_a_normal_png_of_another_size_is_named(tmp_path):
+    import OpenImageIO as oiio
+
+    write_folder(tmp_path / "torus", torus(27.0, 10.0, 0.0))
+    (tmp_path / "torus" / "Normal_gt.mat").unlink()
+    path = str(tmp_path / "torus" / "Normal_gt.png")
+    out = oiio.ImageOutput.create(path)
+    out.open(path, oiio.ImageSpec(W - 3, H - 2, 3, "uint16"))
+    out.write_image(np.full((H - 2, W - 3, 3), 32768, np.uint16))
+    out.close()
+    with pytest.raises(CaptureError, match=rf"Normal_gt.png: {W - 3}x{H - 2}, mask.png {W}x{H}"):
+        diligent_capture(tmp_path / "torus")
