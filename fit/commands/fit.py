@@ -468,6 +468,7 @@ def _summary(cfg, capture, held, start, result, wall, panels, interrupted) -> di
     return {
         "config": str(Path(cfg.path).resolve()),
         "capture": str(cfg.capture),
+        "capture_warnings": list(capture.warnings),
         "interrupted": interrupted,
         "phases": [
             {**p.model_dump(exclude=set(p.model_extra or ())), **p.options.model_dump()}

@@ -227,7 +227,12 @@ def write_report(
     out, summary = Path(out), summary or {}
     assets = out / "report"
     title = title or Path(str(summary.get("config") or "fit")).name
-    page = [_header(summary, title), "<h2>Views</h2>"]
+    page = [_header(summary, title)]
+    notes = summary.get("capture_warnings") or []
+    if notes:
+        items = "".join(f"<li>{_e(n)}</li>" for n in notes)
+        page.append(f"<h2>About the capture</h2><ul class='notes'>{items}</ul>")
+    page.append("<h2>Views</h2>")
     for i, view in enumerate(views):
         png = _view_png(view, assets / f"view-{i:02d}-{_slug(view.name)}.png")
         badge = "<span class='badge'>held out</span>" if view.held_out else ""

@@ -214,6 +214,9 @@ def test_a_torus_folder_fits_its_reflectance(tmp_path):
     out = run_cli("fit", tmp_path / "fit.toml", "--out", tmp_path / "run")
     assert out.returncode == 0, out.stderr
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    (note,) = summary["capture_warnings"]  # what the loader made of the folder, kept
+    assert "fitted as the height field" in note
+    assert "fitted as the height field" in (tmp_path / "run" / "report.html").read_text()
     np.testing.assert_allclose(
         summary["values"]["oren_nayar.reflectance"], [0.6, 0.35, 0.2], atol=0.02
     )
