@@ -328,7 +328,9 @@ def _integrate_slopes(p: np.ndarray, q: np.ndarray, mask: np.ndarray) -> np.ndar
     return heights
 
 
-def normal_map_mesh(normals: np.ndarray, mask: np.ndarray) -> MeshData:
+def normal_map_mesh(
+    normals: np.ndarray, mask: np.ndarray, scale: int = 1, frame: tuple[int, int] | None = None
+) -> MeshData:
     """The surface a normal map sees, as a height field in front of an orthographic camera.
 
     `normals` (H, W, 3): unit normals in the camera's frame (x right, y up, z towards the
@@ -338,30 +340,54 @@ def normal_map_mesh(normals: np.ndarray, mask: np.ndarray) -> MeshData:
     squares, `MAX_SLOPE` at most), its shading normal the given one; two triangles per 2 x 2
     block of masked pixels, facing +z. UVs: the pixel's place in the image (u right, v up).
     Depth jumps (an occluding edge) are bridged by the integration, so the height field's cast
-    shadows are only approximate; the shading at each pixel is the given normal's."""
-    h, w = mask.shape
+    shadows are only approximate; the shading at each pixel is the given normal's.
+
+    With `scale` k the map's pixels are k x k blocks of an image of `frame` (H, W) pixels (the
+    positions, heights and UVs in that image's pixels)."""
+    h, w = frame if frame is not None else mask.shape
     n = np.asarray(normals, np.float64)
     nz = np.maximum(n[..., 2], 1.0 / MAX_SLOPE)
     p = np.clip(-n[..., 0] / nz, -MAX_SLOPE, MAX_SLOPE)
     q = np.clip(-n[..., 1] / nz, -MAX_SLOPE, MAX_SLOPE)
-    heights = _integrate_slopes(p, q, mask)
+    heights = _integrate_slopes(p, q, mask) * scale
     quad = mask[:-1, :-1] & mask[:-1, 1:] & mask[1:, :-1] & mask[1:, 1:]
     used = np.zeros_like(mask)
+    mh, mw = mask.shape
     for di in (0, 1):
         for dj in (0, 1):
-            used[di : h - 1 + di, dj : w - 1 + dj] |= quad
+            used[di : mh - 1 + di, dj : mw - 1 + dj] |= quad
     index = np.full(mask.shape, -1, np.int64)
     index[used] = np.arange(int(used.sum()))
     rows, columns = np.nonzero(used)
-    positions = np.stack([columns + 0.5 - w / 2, h / 2 - (rows + 0.5), heights[rows, columns]], -1)
+    x, y = (columns + 0.5) * scale, (rows + 0.5) * scale  # in the image's pixels
+    positions = np.stack([x - w / 2, h / 2 - y, heights[rows, columns]], -1)
     unit = n[rows, columns]
     unit = unit / np.maximum(np.linalg.norm(unit, axis=-1, keepdims=True), 1e-12)
-    uvs = np.stack([(columns + 0.5) / w, 1.0 - (rows + 0.5) / h], -1)
+    uvs = np.stack([x / w, 1.0 - y / h], -1)
     qi, qj = np.nonzero(quad)
     a, b = index[qi, qj], index[qi, qj + 1]  # top left, top right
     c, d = index[qi + 1, qj], index[qi + 1, qj + 1]  # bottom left, bottom right
     faces = np.concatenate([np.stack([a, c, d], -1), np.stack([a, d, b], -1)])
     return MeshData(positions, faces.astype(np.uint32), unit, uvs)
+
+
+def block_normals(normals: np.ndarray, mask: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """A normal map and its mask averaged over k x k blocks: (normals, mask) of
+    (H // k, W // k) blocks; a block is in the mask when all its pixels are (its normal the
+    mean of theirs, made unit)."""
+    h, w = (mask.shape[0] // k) * k, (mask.shape[1] // k) * k
+    blocks = mask[:h, :w].reshape(h // k, k, w // k, k).all(axis=(1, 3))
+    mean = normals[:h, :w].reshape(h // k, k, w // k, k, 3).mean(axis=(1, 3))
+    length = np.linalg.norm(mean, axis=-1, keepdims=True)
+    return np.where(blocks[..., None], mean / np.maximum(length, 1e-12), 0.0), blocks
+
+
+def covered_blocks(mask: np.ndarray, k: int, shape: tuple[int, int]) -> np.ndarray:
+    """`covered_pixels` of a mask of k x k blocks, as the image's pixels (of `shape`)."""
+    covered = np.kron(covered_pixels(mask), np.ones((k, k), bool))
+    out = np.zeros(shape, bool)
+    out[: covered.shape[0], : covered.shape[1]] = covered
+    return out
 
 
 def covered_pixels(mask: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ import numpy as np
 
 from .capture import Capture, View
 from .errors import CaptureError
-from .geometry import covered_pixels, normal_map_mesh
+from .geometry import block_normals, covered_blocks, covered_pixels, normal_map_mesh
 from .images import read_image, read_linear, read_mask, srgb_encode
 from .peer import load_peer_scene
 from .scene import Camera, DirectionalLight, MeshArrays, Scene, Sphere
@@ -199,7 +199,7 @@ def diligent_capture(folder: str | Path, downscale: int = 1) -> Capture:
     mask = read_mask(folder / "mask.png")
     h, w = mask.shape
     warnings: list[str] = []
-    geometry, covered = diligent_geometry(folder, mask, warnings)
+    geometry, covered = diligent_geometry(folder, mask, warnings, downscale)
     for message in warnings:
         log.warning(message)
     camera = Camera(
@@ -245,12 +245,14 @@ SPHERE_ANGLE_DEG, DISC_IOU = 3.0, 0.95
 MAX_BAD_NORMALS = 0.05
 
 
-def diligent_geometry(folder: Path, mask: np.ndarray, warnings: list[str]):
+def diligent_geometry(folder: Path, mask: np.ndarray, warnings: list[str], downscale: int = 1):
     """(geometry, the pixels it covers whole) of a photometric-stereo object seen along -z:
     the analytic sphere fitted to `mask` when the object is a ball (its `Normal_gt.mat` agrees
     with the sphere's normals, or, without one, the mask is a disc); otherwise the height field
     of `Normal_gt.mat` (`normal_map_mesh`; its weights keep only the pixels it covers whole).
-    What a user should know is appended to `warnings`."""
+    What a user should know is appended to `warnings`. With `downscale` k (the capture's) the
+    height field has a vertex per k x k block (`block_normals`): the fit renders at that
+    resolution, and a large map builds in seconds."""
     try:
         cx, cy, radius = fit_sphere_to_mask(mask)
     except CaptureError as err:
@@ -286,13 +288,16 @@ def diligent_geometry(folder: Path, mask: np.ndarray, warnings: list[str]):
     angle = float(np.degrees(np.median(np.arccos(np.clip(cosine, -1.0, 1.0)))))
     if angle <= SPHERE_ANGLE_DEG:
         return sphere, full  # the sphere's own normals: pixels without a stored one fit too
-    covered = covered_pixels(mask)
-    if covered.sum() < MIN_COVERED:
+    k = max(1, min(int(downscale), min(h, w) // 8))
+    coarse_normals, coarse = (normals, mask) if k == 1 else block_normals(normals, mask, k)
+    covered = covered_pixels(mask) if k == 1 else covered_blocks(coarse, k, (h, w))
+    if covered.sum() < MIN_COVERED * k * k:
         raise CaptureError(
             f"{folder / 'mask.png'}: the object is not a ball (its normals {angle:.0f} deg off the "
-            f"sphere fitted to the mask) and too thin for a height field: {int(covered.sum())} "
-            f"pixels have all eight neighbours in the mask, {MIN_COVERED} are needed; give a "
-            "larger image of it"
+            f"sphere fitted to the mask) and too thin for a height field: "
+            f"{int(covered.sum()) // (k * k)} {'pixels' if k == 1 else f'{k}x{k} blocks'} have "
+            f"all eight neighbours in the mask, {MIN_COVERED} are needed; give a larger image "
+            "of it" + (" or a smaller downscale" if k > 1 else "")
         )
     lost = int(full.sum() - covered.sum())
     warnings.append(
@@ -302,7 +307,8 @@ def diligent_geometry(folder: Path, mask: np.ndarray, warnings: list[str]):
         + (f" or next to the {int(bad.sum())} without a unit normal" if bad.any() else "")
         + " left out)"
     )
-    return MeshArrays(normal_map_mesh(normals, mask), str(path)), covered
+    data = normal_map_mesh(coarse_normals, coarse, k, (h, w))
+    return MeshArrays(data, str(path)), covered
 
 
 #: The fewest pixels a height field must cover whole to be fitted.

@@ -287,3 +287,27 @@ def test_a_normal_png_of_another_size_is_named(tmp_path):
     out.close()
     with pytest.raises(CaptureError, match=rf"Normal_gt.png: {W - 3}x{H - 2}, mask.png {W}x{H}"):
         diligent_capture(tmp_path / "torus")
+
+
+def test_a_downscaled_folder_builds_its_height_field_at_its_resolution(tmp_path):
+    """At downscale 2 the height field has a vertex per 2 x 2 block (a quarter of them) and
+    renders at that resolution still match the (area-averaged) photographs."""
+    from fit.render import render
+    from fit.render.scene import scene_dict
+
+    write_folder(tmp_path / "torus", torus(27.0, 10.0, 0.0))
+    full = diligent_capture(tmp_path / "torus").scene.geometry.data
+    capture = diligent_capture(tmp_path / "torus", 2)
+    data = capture.scene.geometry.data
+    assert 0.15 < len(data.positions) / len(full.positions) < 0.3
+    np.testing.assert_allclose(  # the same surface, in the same (full-resolution) pixels
+        [data.positions[:, :2].min(0), data.positions[:, :2].max(0)],
+        [full.positions[:, :2].min(0), full.positions[:, :2].max(0)],
+        atol=2.0,
+    )
+    for i, view in enumerate(capture.views):
+        image = render(mi.load_dict(scene_dict(capture.scene_of(i), BSDF, 0, 64)), 64)
+        inside = view.weight > 0.999
+        diff = (image - view.image)[inside]
+        error = np.sqrt(np.mean(diff**2)) / np.sqrt(np.mean(view.image[inside] ** 2))
+        assert error < 0.02, (i, error)
