@@ -553,7 +553,9 @@ def inspect(
     with _interruptible(lambda: "no sheet written"):
         coverage = silhouettes(cap) if silhouette else None
         rows = summary(cap, coverage)
-        table = RichTable(title=escape(f"{capture}: {len(rows)} views"))
+        table = RichTable(
+            title=escape(f"{capture}: {len(rows)} views, {_geometry_text(cap.scene.geometry)}")
+        )
         for column in ("view", "size", "gain", "valid", "max", "iou"):
             table.add_column(column)
         for row in rows:
@@ -867,6 +869,21 @@ def export(
         except InputError as err:
             raise _fail(err, 2) from None
     console.print(f"wrote {path}", highlight=False, markup=False)
+
+
+def _geometry_text(geometry) -> str:
+    """The capture's object in a few words, for `inspect`'s title."""
+    from captures.scene import Cup, MeshArrays, ObjFile, Sphere
+
+    if isinstance(geometry, Sphere):
+        return f"a sphere of radius {geometry.radius:.4g}"
+    if isinstance(geometry, Cup):
+        return "the procedural cup"
+    if isinstance(geometry, ObjFile):
+        return f"mesh {Path(geometry.path).name}"
+    if isinstance(geometry, MeshArrays):
+        return f"a height field of {len(geometry.data.faces)} triangles"
+    return type(geometry).__name__
 
 
 class _Plain(logging.Formatter):

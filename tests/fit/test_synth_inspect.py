@@ -123,6 +123,7 @@ def test_inspect_command(tmp_path, shared_data):
     out = run_cli("inspect", scene_json, "--sheet", tmp_path / "sheet.png")
     assert out.returncode == 0, out.stderr
     assert "view_00" in out.stderr and "0.99" in out.stderr
+    assert "mesh mesh.obj" in out.stderr  # the object, in the title
     assert (tmp_path / "sheet.png").stat().st_size > 10_000
 
 
