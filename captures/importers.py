@@ -276,7 +276,15 @@ def diligent_geometry(folder: Path, mask: np.ndarray, warnings: list[str], downs
                 "H x W x 3, or Normal_gt.png storing (n + 1) / 2)"
             )
         return sphere, mask
-    normals, bad = read_normal_map(path, mask)
+    try:
+        normals, bad = read_normal_map(path, mask)
+    except CaptureError as err:
+        png = folder / "Normal_gt.png"
+        if path.suffix != ".mat" or not png.exists():
+            raise
+        warnings.append(f"{err}; read {png.name} instead")
+        path = png
+        normals, bad = read_normal_map(path, mask)
     check_orientation(path, normals, mask, ~bad)
     full = mask
     if bad.any():

@@ -311,3 +311,22 @@ def test_a_downscaled_folder_builds_its_height_field_at_its_resolution(tmp_path)
         diff = (image - view.image)[inside]
         error = np.sqrt(np.mean(diff**2)) / np.sqrt(np.mean(view.image[inside] ** 2))
         assert error < 0.02, (i, error)
+
+
+def test_an_unreadable_mat_falls_back_to_the_png(tmp_path):
+    """A Normal_gt.mat that cannot be read (here: not a MAT file) beside a usable Normal_gt.png:
+    the PNG is read, with a warning naming the .mat's problem."""
+    import OpenImageIO as oiio
+
+    normals = write_folder(tmp_path / "torus", torus(27.0, 10.0, 0.0))
+    path = str(tmp_path / "torus" / "Normal_gt.png")
+    out = oiio.ImageOutput.create(path)
+    out.open(path, oiio.ImageSpec(W, H, 3, "uint16"))
+    out.write_image(np.round((normals + 1) / 2 * 65535).astype(np.uint16))
+    out.close()
+    (tmp_path / "torus" / "Normal_gt.mat").write_text("not a mat file")
+    capture = diligent_capture(tmp_path / "torus")
+    assert isinstance(capture.scene.geometry, MeshArrays)
+    assert any(
+        "not a MATLAB file" in w and "read Normal_gt.png instead" in w for w in capture.warnings
+    )
