@@ -189,8 +189,11 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
 
 
 def read_mask(path: str | Path) -> np.ndarray:
-    """A boolean object mask from an image file (any channel > 0.5)."""
-    return np.any(read_image(path)[..., :3] > 0.5, axis=-1)
+    """A boolean object mask from an image file (any channel > 0.5; a mask whose brightest
+    value is below 0.5, e.g. stored as codes 0 and 1, at half its brightest)."""
+    pixels = read_image(path)[..., :3]
+    top = float(pixels.max()) if pixels.size else 0.0
+    return np.any(pixels > (0.5 if top >= 0.5 or top <= 0 else 0.5 * top), axis=-1)
 
 
 #: Image types the renderer's bitmap textures and environment maps read.

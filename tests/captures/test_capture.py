@@ -443,3 +443,19 @@ def test_a_peer_material_table_with_bad_values_is_named(tmp_path, material, mess
     write_image(tmp_path / "peer" / "view_00.exr", np.full((6, 8, 3), 0.2, np.float32))
     with pytest.raises(CaptureError, match=message):
         peer_capture(path)
+
+
+def test_a_mask_stored_as_codes_0_and_1_reads_as_a_mask(tmp_path):
+    """Some tools write masks as 8-bit codes 0 and 1 (not 255): read as the object's pixels."""
+    import OpenImageIO as oiio
+
+    from captures.images import read_mask
+
+    codes = np.zeros((6, 8, 1), np.uint8)
+    codes[2:4, 3:6] = 1
+    out = oiio.ImageOutput.create(str(tmp_path / "mask.png"))
+    out.open(str(tmp_path / "mask.png"), oiio.ImageSpec(8, 6, 1, "uint8"))
+    out.write_image(codes)
+    out.close()
+    mask = read_mask(tmp_path / "mask.png")
+    assert mask.sum() == 6 and mask[2:4, 3:6].all()
