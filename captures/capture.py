@@ -49,8 +49,8 @@ from .model import (
     StrictModel,
     by_shape,
     config_folder,
+    expect_kind,
     parse_model,
-    toml_kind,
 )
 from .raw import develop, read_raw
 from .scene import Camera, Scene, bounding_sphere, sees
@@ -217,12 +217,14 @@ def load_capture(path: str | Path) -> Capture:
     if path.is_dir():
         path = path / "capture.toml"
     doc = load_toml(path, "capture manifest")
-    kind = toml_kind(doc)
-    if kind not in ("a capture manifest", ""):
-        raise CaptureError(
-            f"{path}: is {kind}, not a capture manifest; give a capture (a folder holding "
-            "capture.toml with [[views]], a peer scene.json or a DiLiGenT folder)"
-        )
+    expect_kind(
+        doc,
+        path,
+        "a capture manifest",
+        "give a capture (a folder holding capture.toml with [[views]], a peer scene.json or a "
+        "DiLiGenT folder)",
+        CaptureError,
+    )
     manifest = parse_model(Manifest, doc, path)
     settings = manifest.capture
     first = {}

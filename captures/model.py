@@ -280,3 +280,11 @@ def toml_kind(doc: dict) -> str:
     if "material" in doc or "render" in doc:
         return "a render config"
     return ""
+
+
+def expect_kind(doc: dict, path, wanted: str, fix: str, error: type[Exception]) -> None:
+    """Raise `error` ("PATH: is a fit config, not WANTED; FIX") when `doc` is plainly another
+    kind of layerfit file than `wanted` (see `toml_kind`)."""
+    kind = toml_kind(doc)
+    if kind not in (wanted, ""):
+        raise error(f"{path}: is {kind}, not {wanted}; {fix}")

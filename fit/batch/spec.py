@@ -11,7 +11,7 @@ from typing import Annotated
 
 from pydantic import Field
 
-from captures.model import ExistingPath, PositiveInt, StrictModel, parse_model, toml_kind
+from captures.model import ExistingPath, PositiveInt, StrictModel, expect_kind, parse_model
 
 from ..errors import ConfigError
 from ..material import read_toml
@@ -74,12 +74,13 @@ def load_batch(path: str | Path) -> Batch:
     """A batch spec from its file; a one-line `InputError` naming the file and key."""
     path = Path(path)
     doc = read_toml(path)
-    kind = toml_kind(doc)
-    if kind not in ("a batch spec", ""):
-        raise ConfigError(
-            f'{path}: is {kind}, not a batch spec; a spec lists configs = ["fit.toml", ...] '
-            "(see layerfit batch --help and README, Batches)"
-        )
+    expect_kind(
+        doc,
+        path,
+        "a batch spec",
+        'a spec lists configs = ["fit.toml", ...] (see layerfit batch --help and README, Batches)',
+        ConfigError,
+    )
     spec = parse_model(BatchSpec, doc, path)
     for key in ("configs", "captures", "seeds"):
         items = [str(x) if key == "seeds" else Path(x).resolve() for x in getattr(spec, key)]

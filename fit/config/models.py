@@ -14,8 +14,8 @@ from captures.model import (
     PositiveFloat,
     PositiveInt,
     StrictModel,
+    expect_kind,
     parse_model,
-    toml_kind,
 )
 
 from ..errors import ConfigError
@@ -139,12 +139,14 @@ def load_fit_config(
     one-line `InputError` naming the file and key."""
     path = Path(path)
     table = read_toml(path)
-    kind = toml_kind(table)
-    if kind not in ("a fit config", ""):
-        raise ConfigError(
-            f"{path}: is {kind}, not a fit config; a fit config names its capture, a "
-            "[material] and a [fit] table (configs/cup-fit.toml is one)"
-        )
+    expect_kind(
+        table,
+        path,
+        "a fit config",
+        "a fit config names its capture, a [material] and a [fit] table (configs/cup-fit.toml "
+        "is one)",
+        ConfigError,
+    )
     doc = parse_model(_FitFile, table, path)
     if capture is None:
         capture = (path.parent / doc.capture).resolve()
