@@ -12,17 +12,19 @@ from pydantic import Field, PositiveFloat, PositiveInt
 
 from captures.errors import InputError
 
+from ..material import to_physical
 from .adam import averaged_result
 from .base import AbstractSolver, Options, Result
 from .problem import noise_ratio, residuals
-from .uncertainty import MAX_UNCERTAINTY_PARAMS, linearised
+from .uncertainty import CROSS_SEED_OFFSET, MAX_UNCERTAINTY_PARAMS, linear_model
 
 
 class GNOptions(Options):
     eta: float = Field(0.5, gt=0.0, le=1.0)
     """Fraction of the Gauss-Newton step taken (1: the full step to the linearised optimum)."""
     jacobian_spp: PositiveInt = 16
-    """Samples per pixel of the curvature's Jacobian render (a decorrelated seed)."""
+    """Samples per pixel of the curvature's Jacobian renders: two of half as many each, with
+    their own seeds (`_curvature` discounts their noise from their product)."""
     primal_spp: PositiveInt | Literal["auto"] | None = None
     """Samples per pixel of each step's image (the residual), its reverse pass staying at the
     phase's `spp` (absent: `spp`). `"auto"` decides at the phase's start from two renders of the
@@ -69,6 +71,35 @@ def sample_split(problem, u, spp: int, seed: int, downscale: int) -> tuple[int, 
     if ratio >= AUTO_RATIO:
         return AUTO_SPLIT * spp, max(1, spp // AUTO_SPLIT), ratio
     return spp, spp, ratio
+
+
+#: The most a coordinate's curvature is lowered below its plain `J^T J` for the Jacobian's noise.
+MAX_NOISE_SHARE = 15 / 16
+
+
+def _curvature(j1: np.ndarray, j2: np.ndarray) -> np.ndarray:
+    """A Gauss-Newton curvature from two independent Jacobians: the mean's `J^T J`, each
+    coordinate scaled down to a cautious estimate of its noise-free value.
+
+    A rendered Jacobian's noise adds its energy to `J^T J` (never negative), so the curvature
+    is too large, most where the image barely depends on a coordinate: on a 160x120 sphere at
+    alpha 0.012-0.02, alpha's was 15-18x its noise-free value from 16-spp Jacobians and 5-10x
+    at 64 spp (pigment 1.1x, ior 1.5x); its steps were as much too short and `gn` did not relax
+    within a phase. The cross product `sum(a b)` of the two is unbiased for the noise-free
+    diagonal but noisy itself (its standard deviation about `sqrt(sum(a^2 b^2))`), so each
+    diagonal entry is lowered only to that product plus two of its standard deviations (a
+    step too long by more than 2/eta oscillates), at most `MAX_NOISE_SHARE` of the way, by
+    scaling the coordinate's row and column (the curvature stays positive semi-definite)."""
+    mean = 0.5 * (j1 + j2)
+    plain = mean.T @ mean
+    diagonal = np.diag(plain)
+    products = j1 * j2
+    cautious = products.sum(axis=0) + 2.0 * np.sqrt((products * products).sum(axis=0))
+    lowest = (1.0 - MAX_NOISE_SHARE) * diagonal
+    ok = diagonal > 0
+    scale = np.ones_like(diagonal)
+    scale[ok] = np.sqrt(np.clip(cautious[ok], lowest[ok], diagonal[ok]) / diagonal[ok])
+    return plain * np.outer(scale, scale)
 
 
 class GaussNewton(AbstractSolver):
@@ -136,26 +167,40 @@ class GaussNewton(AbstractSolver):
 
         value_and_grad = jax.jit(jax.value_and_grad(loss))
         history, tail, gradients, rejected, first = [], [], [], 0, 0
-        mean_jac = inverse = None
+        model = linear_model(problem, downscale)
+        # (image, values, the means of the phase's two series of physical Jacobian renders)
+        linear = None
         if resume is not None:
             first = int(resume["step"])  # `u` is the saved one (above)
             history, rejected = list(resume["history"]), int(resume["rejected"])
             tail = list(np.asarray(resume["tail"]))
             gradients = list(np.asarray(resume.get("tail_gradients", [])))
-            if resume["leaves"]:  # the Jacobian in use when the state was offered
-                mean_jac = np.asarray(resume["leaves"][0], np.float64)
-                inverse = self._inverse(mean_jac.T @ mean_jac, options)
+            if len(resume["leaves"]) == 4:  # the Jacobians in use when the state was offered
+                linear = tuple(np.asarray(leaf, np.float32) for leaf in resume["leaves"])
         first_averaged = steps - round(options.average * steps)
         for i in range(first, steps):
             step_seed = seed * 100003 + i + 1
-            if inverse is None or i % options.refresh == 0:
-                # the mean of the phase's Jacobians so far: a rendered Jacobian's noise adds to
-                # its J^T J (too short steps where the image barely depends on a parameter);
-                # averaging k renders divides that excess by k
-                jac = self._jacobian(problem, u, options, step_seed, downscale)
+            if linear is None or i % options.refresh == 0:
+                # Two Jacobians of half the samples each (independent seeds), each averaged
+                # over the phase's refreshes so far (averaging k renders divides their noise's
+                # excess curvature by k), in physical values: the transforms' derivatives change
+                # along the way far more than the image's (alpha from 0.025 to 0.0135 next to
+                # its bound 0.01: d alpha / d u 4x smaller), and a mean of solver-space
+                # Jacobians kept the earlier, steeper ones (steps ~16x too short there).
+                image, x, j1, j2 = self._jacobians(problem, u, options, step_seed, downscale)
                 k = i // options.refresh + 1
-                mean_jac = jac if mean_jac is None else mean_jac + (jac - mean_jac) / k
-                inverse = self._inverse(mean_jac.T @ mean_jac, options)
+                if linear is not None and k > 1:
+                    j1 = linear[2] + (j1 - linear[2]) / k
+                    j2 = linear[3] + (j2 - linear[3]) / k
+                linear = (image, x, j1, j2)
+            image, x, j1, j2 = linear
+            inverse = self._inverse(
+                _curvature(
+                    np.asarray(model(u, image, j1, x)[1], np.float64),
+                    np.asarray(model(u, image, j2, x)[1], np.float64),
+                ),
+                options,
+            )
             value, grad = value_and_grad(jnp.asarray(u), jnp.int32(step_seed))
             value, grad = float(value), np.asarray(grad, np.float64)
             delta = -options.eta * (inverse @ grad)
@@ -177,7 +222,7 @@ class GaussNewton(AbstractSolver):
                     {
                         "step": i + 1,
                         "u": u,
-                        "leaves": [mean_jac],
+                        "leaves": list(linear),
                         "history": history,
                         "n_history": len(history),
                         "tail": tail,
@@ -198,9 +243,14 @@ class GaussNewton(AbstractSolver):
         return out
 
     @staticmethod
-    def _jacobian(problem, u, options, seed, downscale) -> np.ndarray:
-        """The residuals' Jacobian at `u` from one render at `jacobian_spp` (its own seed)."""
-        return linearised(problem, u, options.jacobian_spp, seed + 0x5EED, downscale)[1]
+    def _jacobians(problem, u, options, seed, downscale):
+        """(image, the values at `u`, two Jacobians in physical values) from two renders of
+        `jacobian_spp / 2` with their own seeds."""
+        x = np.asarray(to_physical(problem.free, jnp.asarray(u[: problem.n_material]), jnp))
+        renderer, half = problem.renderer(downscale), max(options.jacobian_spp // 2, 1)
+        image, j1 = renderer.jacobian(x, seed + 0x5EED, half)
+        j2 = renderer.jacobian(x, seed + 0x5EED + CROSS_SEED_OFFSET, half)[1]
+        return image, x, j1, j2
 
     @staticmethod
     def _inverse(h: np.ndarray, options) -> np.ndarray:

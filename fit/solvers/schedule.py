@@ -105,7 +105,7 @@ class Phase(BaseModel):
 #: against this schedule's 26; BENCHMARKS, "Recovery over the range").
 DEFAULT_SCHEDULE = (
     Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
-    Phase(solver="gn", steps=56, spp=16, jacobian_spp=16, refresh=10, average=0.0),
+    Phase(solver="gn", steps=56, spp=16, jacobian_spp=16, refresh=10, average=0.5),
     Phase(solver="gn", steps=12, spp=64, jacobian_spp=32, refresh=6, average=1.0),
 )
 

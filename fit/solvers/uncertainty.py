@@ -82,13 +82,24 @@ def linearised(
     from one Jacobian render at `spp` (one forward-mode pass per material component); the
     residual's own derivatives (gains, loss, weights) follow in JAX through the render's
     linearisation."""
-    n = problem.n_material
     u = jnp.asarray(u, jnp.float32)
-    x0 = to_physical(problem.free, u[:n], jnp)
-    image0, jac_x = problem.renderer(downscale).jacobian(np.asarray(x0), seed, spp)
-    residual = residuals(problem, lambda x, _: image0 + jac_x @ (x - x0), downscale)
-    r = np.asarray(residual(u, 0), np.float64)
-    return r, np.asarray(jax.jacfwd(residual)(u, 0), np.float64)
+    x0 = np.asarray(to_physical(problem.free, u[: problem.n_material], jnp))
+    image0, jac_x = problem.renderer(downscale).jacobian(x0, seed, spp)
+    r, jac = linear_model(problem, downscale)(u, image0, jac_x, x0)
+    return np.asarray(r, np.float64), np.asarray(jac, np.float64)
+
+
+def linear_model(problem: Problem, downscale: int = 1):
+    """`f(u, image0, jac_x, x0)`: the weighted residuals and their Jacobian in the solver's space
+    at `u` of the linear image `image0 + jac_x (x - x0)` (a render and its Jacobian in physical
+    values at `x0`), jitted: a Jacobian rendered at one point serves the solver's coordinates at
+    another (the transforms' derivatives taken where `u` is)."""
+
+    def f(u, image0, jac_x, x0):
+        residual = residuals(problem, lambda x, _: image0 + jac_x @ (x - x0), downscale)
+        return residual(u, 0), jax.jacfwd(residual)(u, 0)
+
+    return jax.jit(lambda u, image0, jac_x, x0: f(jnp.asarray(u, jnp.float32), image0, jac_x, x0))
 
 
 def uncertainty(
