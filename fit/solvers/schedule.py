@@ -90,7 +90,9 @@ class Phase(BaseModel):
 #: The default schedule: Adam with fresh seeds at half resolution and 8 spp is cheap and robust
 #: from far away (its scale-free steps also move a parameter started next to a bound, where the
 #: sigmoid is flat); then the stochastic Gauss-Newton `gn` at full resolution, in two phases: 56
-#: steps of 16 spp relax (their last iterate kept), 12 of 64 spp are averaged. A gradient's
+#: steps of 16 spp relax (the mean of their last half handed on: their last iterate, handed on
+#: until 2026-12-01, wanders 0.012-0.028 around alpha 0.02 at 16 spp, and the averaged phase did
+#: not relax from it), 12 of 64 spp are averaged. A gradient's
 #: variance falls faster than 1 / spp (8x for 4x the samples at alpha 0.02; README "Fitting"),
 #: so the average is best taken over few steps of many samples; relaxing takes steps (24 x 64
 #: spp alone left ior -0.03 and -0.11 off at alpha 0.6 and 1, in a low-ior basin). `gn`
