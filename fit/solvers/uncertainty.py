@@ -93,13 +93,18 @@ def linear_model(problem: Problem, downscale: int = 1):
     """`f(u, image0, jac_x, x0)`: the weighted residuals and their Jacobian in the solver's space
     at `u` of the linear image `image0 + jac_x (x - x0)` (a render and its Jacobian in physical
     values at `x0`), jitted: a Jacobian rendered at one point serves the solver's coordinates at
-    another (the transforms' derivatives taken where `u` is)."""
+    another (the transforms' derivatives taken where `u` is). One per problem and resolution
+    (kept in its cache: compiled once for every phase and the uncertainty)."""
+    key = ("linear_model", downscale)
+    if key not in problem._cache:
 
-    def f(u, image0, jac_x, x0):
-        residual = residuals(problem, lambda x, _: image0 + jac_x @ (x - x0), downscale)
-        return residual(u, 0), jax.jacfwd(residual)(u, 0)
+        def f(u, image0, jac_x, x0):
+            residual = residuals(problem, lambda x, _: image0 + jac_x @ (x - x0), downscale)
+            u = jnp.asarray(u, jnp.float32)
+            return residual(u, 0), jax.jacfwd(residual)(u, 0)
 
-    return jax.jit(lambda u, image0, jac_x, x0: f(jnp.asarray(u, jnp.float32), image0, jac_x, x0))
+        problem._cache[key] = jax.jit(f)
+    return problem._cache[key]
 
 
 def uncertainty(
