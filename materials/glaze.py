@@ -14,8 +14,7 @@ normal by `a` times the slope of an fbm height (per noise cell); their scales (`
 cells per UV unit) and `noise_seed` are fixed options.
 
 Sampling picks a
-lobe with probability from an estimate of the lobes' weights, the specular one at least
-`MIN_SPECULAR_PROB` of the time, then samples Beckmann half-vectors
+lobe with probability from an estimate of the lobes' weights, then samples Beckmann half-vectors
 (Walter et al. 2007) or a cosine-weighted direction; `pdf` is the matching mixture. Sampling
 decisions are detached from the AD graph; the returned weight is `f cos / detach(pdf)`.
 """
@@ -34,15 +33,6 @@ _GLOSSY = mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide
 _DIFFUSE = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
 # A lobe is never sampled with probability below this: keeps both lobes reachable for MIS.
 _MIN_LOBE_PROB = 0.05
-#: The specular lobe is sampled at least this often. By the lobes' weights alone (Fresnel 0.04
-#: against a pigment of 0.3) one BSDF sample in eight went to it, yet emitter sampling covers the
-#: diffuse lobe (area lights, environments) and not a sharp specular one, and a derivative by
-#: roughness comes from the specular samples alone. Measured at the truth of recovery cases
-#: (160x120, three views, 16 spp): at alpha 0.02 on the sphere the sd of the loss's gradient in
-#: alpha fell 2.3x (ior 1.9x) and the image's variance 2.1x; on the torus 3.9x (ior 3.8x), the
-#: image's variance 1.8x, alpha's Jacobian no longer all noise; white pigment, alpha 0.3 and 1:
-#: unchanged within 3 % (scripts/benchmarks, "Recovery over the range", 2026-12-01).
-MIN_SPECULAR_PROB = 0.5
 # UV step of the finite differences that give the normal noise's slope; octaves of both noises.
 _NOISE_EPS = 1e-4
 _NOISE_OCTAVES = 4
@@ -148,7 +138,7 @@ class Glaze(mi.BSDF):
         with dr.suspend_grad():
             f_v = fresnel(mi.Frame3f.cos_theta(si.wi), self.ior, self.fresnel)
             w_diff = (1.0 - f_v) * dr.mean(self.eval_pigment(si, active))
-            prob = dr.maximum(f_v / dr.maximum(f_v + w_diff, 1e-12), MIN_SPECULAR_PROB)
+            prob = f_v / dr.maximum(f_v + w_diff, 1e-12)
             return dr.clip(prob, _MIN_LOBE_PROB, 1.0 - _MIN_LOBE_PROB)
 
     def _pdfs(self, si, wo, alpha):
