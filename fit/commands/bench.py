@@ -566,10 +566,72 @@ def plot_long_run(run: LongRun, out: Path) -> Path:
 # Recovery over the parameter range (issue 14) -----------------------------------------------------
 
 
+#: The modules whose constants decide a default fit's answer besides its schedule (`gn`'s
+#: curvature caution, the uncertainty's thresholds, the BSDFs' sampling and bounds).
+FIT_MODULES = (
+    "fit.solvers.adam",
+    "fit.solvers.gn",
+    "fit.solvers.problem",
+    "fit.solvers.schedule",
+    "fit.solvers.uncertainty",
+    "materials.glaze",
+    "materials.layered",
+    "materials.microfacet",
+    "materials.oren_nayar",
+    "materials.params",
+)
+
+
+def _canonical(value):
+    """`value` as JSON-able data that does not depend on the process (sets sorted: their order
+    follows the string hash's per-process seed); objects without such a form as their repr,
+    None where that holds an address."""
+    import dataclasses
+
+    from pydantic import BaseModel
+
+    if isinstance(value, BaseModel):
+        value = value.model_dump()
+    elif dataclasses.is_dataclass(value) and not isinstance(value, type):
+        value = {f.name: getattr(value, f.name) for f in dataclasses.fields(value)}
+    if isinstance(value, dict):
+        return {str(k): _canonical(v) for k, v in value.items()}
+    if isinstance(value, set | frozenset):
+        return sorted((_canonical(v) for v in value), key=repr)
+    if isinstance(value, list | tuple):
+        return [_canonical(v) for v in value]
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    text = repr(value)
+    return None if " at 0x" in text else text
+
+
+def constants_digest(modules=FIT_MODULES) -> str:
+    """A short hash of the upper-case module constants of `modules`: a changed constant
+    (`gn.CAUTION`) changes it, and it is the same in every process."""
+    import hashlib
+    import importlib
+    import inspect
+    import json
+
+    table = {}
+    for name in modules:
+        module = importlib.import_module(name)
+        for key, value in vars(module).items():
+            if key.lstrip("_").isupper() and not (inspect.ismodule(value) or callable(value)):
+                table[f"{name}.{key}"] = _canonical(value)
+    text = json.dumps(table, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
 def schedule_key(schedule) -> list[str]:
     """A schedule as a resumable results file's setting records it: each phase's solver, spp,
-    resolution, steps and options (a changed option makes earlier results another setting)."""
-    return [f"{p.describe()} x {p.steps} {p.options!r}" for p in schedule]
+    resolution, steps and options, and the digest of the fitting code's constants
+    (`constants_digest`): a changed option or constant makes earlier results another setting
+    (until 2026-12-01 a changed `gn.CAUTION` silently kept the old default runs)."""
+    return [f"{p.describe()} x {p.steps} {p.options!r}" for p in schedule] + [
+        f"constants {constants_digest()}"
+    ]
 
 
 def _resumed(

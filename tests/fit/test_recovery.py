@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -64,6 +65,42 @@ def test_calibration_table_resumes_and_refuses_a_foreign_file(tmp_path, monkeypa
         bench.recovery_table([case], 16, 12, results)
     bench.recovery_table([case], 16, 12, results, replace=True)
     assert json.loads(results.read_text())["setting"]["size"] == [16, 12]
+
+
+def test_a_changed_solver_constant_is_another_setting(monkeypatch):
+    """The results files' setting holds the fitting code's constants besides the schedule: a
+    changed `gn.CAUTION` (or a BSDF's sampling constant) makes earlier default runs another
+    setting; the digest is the same in every process (sets sorted whatever the hash seed)."""
+    import subprocess
+    import sys
+
+    import fit.solvers.gn as gn
+    import materials.glaze as glaze
+    from fit.solvers import DEFAULT_SCHEDULE
+
+    key = bench.schedule_key(DEFAULT_SCHEDULE)
+    assert key[-1] == f"constants {bench.constants_digest()}"
+    monkeypatch.setattr(gn, "CAUTION", gn.CAUTION + 1.0)
+    assert bench.schedule_key(DEFAULT_SCHEDULE) != key
+    monkeypatch.undo()
+    monkeypatch.setattr(glaze, "_MIN_LOBE_PROB", 0.1)
+    assert bench.constants_digest() != key[-1].split()[-1]
+    monkeypatch.undo()
+    code = (
+        "from fit.variant import select_variant; select_variant(); "
+        "from fit.commands import bench; print(bench.constants_digest())"
+    )
+    digests = {
+        subprocess.run(
+            [sys.executable, "-c", code],
+            env={**os.environ, "PYTHONHASHSEED": str(seed)},
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.split()[-1]
+        for seed in (1, 2)
+    }
+    assert digests == {key[-1].split()[-1]}
 
 
 def test_outcome_scores_targets_and_sigmas():
