@@ -708,7 +708,7 @@ def recovery_table(
         results,
         setting,
         "cases",
-        "a sweep of another size, schedule or start",
+        "a sweep of another size, schedule, start or fitting code (its constants)",
         replace,
         ("values", "std", "seconds"),
     )
@@ -1244,7 +1244,12 @@ def grid_table(
     setting = {"default": schedule_key(DEFAULT_SCHEDULE)}
     required = ("seconds", "renders", "max_relative_error", "held_out_rmse")
     done = _resumed(
-        results, setting, "cells", "a grid of another default schedule", replace, required
+        results,
+        setting,
+        "cells",
+        "a grid of another default schedule or fitting code (its constants)",
+        replace,
+        required,
     )
     task = progress.add_task("bench: grid", total=len(cells)) if progress else None
     for cell in cells:
