@@ -1,7 +1,8 @@
 """`glaze`: a dielectric coat (Beckmann / Cook-Torrance, Fresnel-weighted) over a pigment.
 
 With `v = wi` (towards the viewer), `l = wo`, `spec = D G / (4 (n.l)(n.v))` and
-`rho_d = pigment / pi * OrenNayar(sigma)`:
+`rho_d = pigment / pi * OrenNayar(sigma)` (or OpenPBR's EON with roughness `sigma`, `diffuse =
+"eon"`):
 
 - `coupling = "paper"` (the paper's, Blender's Fresnel-mix): `f = (1 - F(n.v)) rho_d + F(n.v) spec`;
 - `coupling = "reciprocal"`: `f = F(v.h) spec + (1 - F(n.l)) (1 - F(n.v)) rho_d`;
@@ -25,7 +26,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ._plugin import read_float, read_option, read_texture
-from .microfacet import beckmann_d, cook_torrance_g, fresnel, oren_nayar, sample_beckmann
+from .microfacet import beckmann_d, cook_torrance_g, eon, fresnel, oren_nayar, sample_beckmann
 from .noise import fbm
 from .params import GLAZE
 
@@ -52,6 +53,7 @@ class Glaze(mi.BSDF):
         self.ior = read_float(props, self.PARAMS["ior"], "glaze")
         options = {k: read_option(props, o, "glaze") for k, o in GLAZE.options.items()}
         self.coupling, self.fresnel = options["coupling"], options["fresnel"]
+        self.diffuse = options["diffuse"]
         self.pigment_noise = self.normal_noise = None
         if "pigment_noise" in props:
             self.pigment_noise = read_float(props, self.PARAMS["pigment_noise"], "glaze")
@@ -115,7 +117,10 @@ class Glaze(mi.BSDF):
 
         # Diffuse pigment: Oren-Nayar times cos(theta_l)
         pigment = self.eval_pigment(si, active)
-        diffuse = pigment * (dr.inv_pi * oren_nayar(wi, wo, self.sigma) * cos_l)
+        if self.diffuse == "eon":
+            diffuse = eon(wi, wo, self.sigma, pigment) * cos_l
+        else:
+            diffuse = pigment * (dr.inv_pi * oren_nayar(wi, wo, self.sigma) * cos_l)
 
         # Fresnel coupling of the two lobes
         f_v = fresnel(cos_v, self.ior, self.fresnel)
@@ -232,5 +237,5 @@ class Glaze(mi.BSDF):
     def to_string(self):
         return (
             f"Glaze[roughness={self.roughness}, ior={self.ior}, sigma={self.sigma}, "
-            f"coupling={self.coupling}, fresnel={self.fresnel}]"
+            f"coupling={self.coupling}, fresnel={self.fresnel}, diffuse={self.diffuse}]"
         )

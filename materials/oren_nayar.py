@@ -1,8 +1,10 @@
-"""`oren_nayar`: the qualitative Oren-Nayar diffuse BSDF (clay, lime scale, stains).
+"""`oren_nayar`: a rough diffuse BSDF (clay, lime scale, stains).
 
-`f cos = reflectance / pi * (A + B max(0, cos dphi) sin a tan b) * cos(theta_o)`, sampled
-cosine-weighted. `sigma = 0` is Lambert, identical to Mitsuba's `diffuse`. One-sided, like Mitsuba's
-own BSDFs (wrap in `twosided` for a sheet).
+`diffuse = "qualitative"` (the default): `f cos = reflectance / pi * (A + B max(0, cos dphi) sin a
+tan b) * cos(theta_o)`, the qualitative Oren-Nayar. `diffuse = "eon"`: OpenPBR's energy-preserving
+Oren-Nayar with `sigma` its roughness (`microfacet.eon`). Sampled cosine-weighted. `sigma = 0` is
+Lambert in both, identical to Mitsuba's `diffuse`. One-sided, like Mitsuba's own BSDFs (wrap in
+`twosided` for a sheet).
 """
 
 from __future__ import annotations
@@ -10,9 +12,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ._plugin import read_float, read_texture
-from .microfacet import oren_nayar
-from .params import OREN_NAYAR_PARAMS
+from ._plugin import read_float, read_option, read_texture
+from .microfacet import eon, oren_nayar
+from .params import OREN_NAYAR
 
 _FLAGS = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
 
@@ -20,12 +22,13 @@ _FLAGS = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
 class OrenNayar(mi.BSDF):
     """Rough diffuse reflection. Parameters: see `materials.params.OREN_NAYAR_PARAMS`."""
 
-    PARAMS = OREN_NAYAR_PARAMS
+    PARAMS = OREN_NAYAR.params
 
     def __init__(self, props: mi.Properties):
         mi.BSDF.__init__(self, props)
         self.reflectance = read_texture(props, self.PARAMS["reflectance"], "oren_nayar")
         self.sigma = read_float(props, self.PARAMS["sigma"], "oren_nayar")
+        self.diffuse = read_option(props, OREN_NAYAR.options["diffuse"], "oren_nayar")
         self.m_components = [_FLAGS]
         self.m_flags = _FLAGS
 
@@ -34,7 +37,10 @@ class OrenNayar(mi.BSDF):
         wi = si.wi
         active &= (mi.Frame3f.cos_theta(wi) > 0) & (mi.Frame3f.cos_theta(wo) > 0)
         albedo = self.reflectance.eval(si, active)
-        value = albedo * (dr.inv_pi * oren_nayar(wi, wo, self.sigma) * mi.Frame3f.cos_theta(wo))
+        if self.diffuse == "eon":
+            value = eon(wi, wo, self.sigma, albedo) * mi.Frame3f.cos_theta(wo)
+        else:
+            value = albedo * (dr.inv_pi * oren_nayar(wi, wo, self.sigma) * mi.Frame3f.cos_theta(wo))
         return dr.select(active, value, 0.0), active
 
     def sample(self, ctx, si, sample1, sample2, active=True):
@@ -72,4 +78,6 @@ class OrenNayar(mi.BSDF):
         dr.make_opaque(self.sigma)
 
     def to_string(self):
-        return f"OrenNayar[reflectance={self.reflectance}, sigma={self.sigma}]"
+        return (
+            f"OrenNayar[reflectance={self.reflectance}, sigma={self.sigma}, diffuse={self.diffuse}]"
+        )

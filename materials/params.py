@@ -111,7 +111,8 @@ SIGMA = ParamSpec(
     1.0,
     "sigmoid",
     "rad",
-    "Oren-Nayar facet slope standard deviation; 0 is Lambert",
+    "Oren-Nayar facet slope standard deviation (with diffuse = 'eon': EON's roughness in [0, 1],"
+    " no unit); 0 is Lambert",
 )
 REFLECTANCE = ParamSpec(
     "reflectance",
@@ -297,6 +298,13 @@ def _options(*options: Option) -> dict[str, Option]:
 
 
 _SEED_MAX = 2**31 - 1
+#: The diffuse lobe of a glaze's pigment and of an `oren_nayar` layer; `sigma` is its roughness.
+DIFFUSE = ChoiceOption(
+    "diffuse",
+    ("qualitative", "eon"),
+    "the diffuse lobe: the qualitative Oren-Nayar (sigma: facet slope in radians) or OpenPBR's "
+    "energy-preserving EON (sigma: its roughness in [0, 1]; Blender's, MaterialX's)",
+)
 GLAZE = PluginDecl(
     "glaze",
     {**GLAZE_PARAMS, **GLAZE_OPTIONAL_PARAMS},
@@ -305,6 +313,7 @@ GLAZE = PluginDecl(
             "coupling", ("paper", "reciprocal"), "how the specular and diffuse lobes combine"
         ),
         ChoiceOption("fresnel", ("schlick", "exact"), "Schlick's approximation or the exact one"),
+        DIFFUSE,
         IntOption("pigment_noise_scale", 8, 1, 4096, "noise cells per UV unit of the pigment"),
         IntOption("normal_noise_scale", 16, 1, 4096, "noise cells per UV unit of the normal"),
         IntOption("noise_seed", 0, 0, _SEED_MAX, "seed of both noises"),
@@ -316,7 +325,7 @@ GLAZE = PluginDecl(
         "noise_seed": ("pigment_noise", "normal_noise"),
     },
 )
-OREN_NAYAR = PluginDecl("oren_nayar", OREN_NAYAR_PARAMS, {})
+OREN_NAYAR = PluginDecl("oren_nayar", OREN_NAYAR_PARAMS, _options(DIFFUSE))
 FBM = PluginDecl(
     "fbm",
     MASK_PARAMS,

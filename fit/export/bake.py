@@ -26,7 +26,8 @@ class Layer:
 
     - `kind`: `glaze` or `oren_nayar`; `colour`: the pigment or reflectance (linear RGB), or
       `colour_map` (size, size, 3) where it varies (a texture, the pigment noise).
-    - `sigma`: Oren-Nayar sigma (radians); `roughness`, `ior`: the glaze's Beckmann alpha and ior
+    - `sigma`: Oren-Nayar sigma (radians; EON's roughness with the option `diffuse = "eon"`);
+      `roughness`, `ior`: the glaze's Beckmann alpha and ior
       (None for `oren_nayar`); `options`: the plugin's options (`fresnel`, `coupling`, ...).
     - `mask`: (size, size) in [0, 1] (texture x fbm, baked), None for the bottom layer.
     """
@@ -41,6 +42,11 @@ class Layer:
     options: dict
     mask: np.ndarray | None
     normal_noise: float = 0.0
+
+    @property
+    def diffuse(self) -> str:
+        """The diffuse lobe (`qualitative` Oren-Nayar or `eon`), the `sigma`'s meaning."""
+        return self.options.get("diffuse", "qualitative")
 
 
 @dataclass(frozen=True)

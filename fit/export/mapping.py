@@ -287,6 +287,31 @@ def lambert_scale(sigma: float) -> float:
     return float(np.interp(sigma, s, k))
 
 
+def eon_lambert_factor(colour, r: float):
+    """Per channel, the factor on an EON lobe's colour (roughness `r`) that gives a Lambertian of
+    the same hemispherical albedo, `E_avg + rho_ms (1 - E_avg) / rho` (OpenPBR's EON: exact, its
+    average albedo is closed-form); 1 at `r = 0` and for a white colour."""
+    rho = np.asarray(colour, np.float64)
+    a = 1.0 / (1.0 + _FUJII_1 * r)
+    average = a * (1.0 + _FUJII_2 * r)
+    return average + rho * average * (1.0 - average) / (1.0 - rho * (1.0 - average))
+
+
+def as_lambert(colour, sigma: float, diffuse: str = "qualitative"):
+    """A diffuse lobe's colour (an RGB triple or an image) as a Lambertian's: the qualitative
+    Oren-Nayar's scaled by `lambert_scale`, EON's by `eon_lambert_factor`."""
+    colour = np.asarray(colour, np.float64)
+    if diffuse == "eon":
+        return colour * eon_lambert_factor(colour, sigma)
+    return colour * lambert_scale(sigma)
+
+
+def as_eon(sigma: float, diffuse: str = "qualitative") -> tuple[float, float]:
+    """(OpenPBR's `base_diffuse_roughness`, the factor on the base colour) for a layer's diffuse
+    lobe: EON's own roughness as it is, the qualitative model's through `eon_roughness`."""
+    return (float(sigma), 1.0) if diffuse == "eon" else eon_roughness(sigma)
+
+
 def ggx_residual(alpha: float) -> float:
     """The relative lobe residual at `alpha`, interpolated from `GGX_TABLE`."""
     a, _, e = np.array(GGX_TABLE).T

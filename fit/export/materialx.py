@@ -4,7 +4,9 @@ Per layer (values from `mapping`):
 
 - colour (pigment, clay/lime/stain reflectance) -> `base_color`, times the EON colour factor of
   its sigma; a varying colour (texture, pigment noise) is a baked `image` beside the document;
-- Oren-Nayar sigma (radians) -> `base_diffuse_roughness` (OpenPBR's EON, [0, 1]);
+- Oren-Nayar sigma (radians) -> `base_diffuse_roughness` (OpenPBR's EON, [0, 1]) through
+  `mapping.eon_roughness`; a layer with `diffuse = "eon"` is EON already: its sigma and colour
+  go over as they are;
 - the glaze -> the specular layer: `specular_ior` = ior, `specular_roughness` = the GGX r whose
   lobe is nearest its Beckmann alpha (alpha_GGX = r^2); an Oren-Nayar layer has
   `specular_weight` 0. The glaze is a dielectric directly over its pigment, which is OpenPBR's
@@ -28,7 +30,7 @@ from pathlib import Path
 from ..errors import ConfigError
 from ..material import Material
 from .bake import Layer, Progress, plan, write_exr
-from .mapping import eon_roughness, ggx_roughness
+from .mapping import as_eon, ggx_roughness
 
 #: The file each export writes in its folder.
 FILE = "material.mtlx"
@@ -87,7 +89,7 @@ def _surface(doc, layer: Layer, folder: Path):
     """One layer's `open_pbr_surface`."""
     import MaterialX as mx
 
-    diffuse_roughness, scale = eon_roughness(layer.sigma)
+    diffuse_roughness, scale = as_eon(layer.sigma, layer.diffuse)
     node = doc.addNode("open_pbr_surface", doc.createValidChildName(layer.name), "surfaceshader")
     if layer.colour_map is not None:
         name = write_exr(folder / f"{layer.name}.colour.exr", layer.colour_map * scale)

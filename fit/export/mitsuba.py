@@ -5,7 +5,7 @@
   `mi.load_file` once `materials.register()` has run, and renders as the native material.
 - Portable: Mitsuba's built-in plugins only. A glaze becomes `principled` (base colour the
   pigment, GGX roughness from `mapping.ggx_roughness`, eta the ior), an Oren-Nayar layer a
-  `diffuse` (its colour scaled by `mapping.lambert_scale`); layers nest in `blendbsdf`s weighted
+  `diffuse` (its colour scaled by `mapping.as_lambert`); layers nest in `blendbsdf`s weighted
   by the masks baked to bitmaps, the bump is a `bumpmap` of the baked height field, and the
   pigment noise a baked bitmap. The glaze's normal noise and its diffuse sigma are lost.
 
@@ -25,7 +25,7 @@ from materials.params import FBM, LAYER_PLUGINS, LAYERED
 
 from ..material import Material
 from .bake import Layer, Plan, Progress, plan, write_exr
-from .mapping import ggx_roughness, lambert_scale
+from .mapping import as_lambert, ggx_roughness
 
 #: The file each export writes in its folder.
 FILE = "material.xml"
@@ -73,12 +73,13 @@ def portable_dict(baked: Plan, folder: Path) -> dict:
 
 
 def _layer(layer: Layer, folder: Path) -> dict:
-    scale = lambert_scale(layer.sigma)
     if layer.colour_map is not None:
-        name = write_exr(folder / f"{layer.name}.colour.exr", layer.colour_map * scale)
+        image = as_lambert(layer.colour_map, layer.sigma, layer.diffuse)
+        name = write_exr(folder / f"{layer.name}.colour.exr", image)
         colour: dict = {"type": "bitmap", "filename": name, "raw": True}
     else:
-        colour = {"type": "rgb", "value": [float(c) * scale for c in layer.colour]}
+        value = as_lambert(layer.colour, layer.sigma, layer.diffuse)
+        colour = {"type": "rgb", "value": [float(c) for c in value]}
     if layer.kind == "glaze":
         return {
             "type": "principled",

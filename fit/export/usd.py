@@ -1,8 +1,8 @@
 """USD: a `.usda` layer with one `UsdPreviewSurface` material, baked maps through `UsdUVTexture`.
 
 UsdPreviewSurface is one surface, not a stack, and cannot hold (`LIMITS`, written into the file's
-`comment` metadata too): a diffuse roughness (Oren-Nayar sigma: the colour is scaled by
-`mapping.lambert_scale` instead), more than one ior (its `ior` is shared by the base and the
+`comment` metadata too): a diffuse roughness (Oren-Nayar or EON sigma: the colour is scaled by
+`mapping.as_lambert` instead), more than one ior (its `ior` is shared by the base and the
 clearcoat), a coloured clearcoat, per-layer lobes, bump or normal noise. So the stack is baked:
 
 - `diffuseColor`: sum_k w_k c_k (each layer's colour times its Lambert factor, weighted by its
@@ -21,7 +21,7 @@ import numpy as np
 
 from ..material import Material
 from .bake import Plan, Progress, plan, write_exr
-from .mapping import ggx_roughness, lambert_scale
+from .mapping import as_lambert, ggx_roughness
 
 #: The file each export writes in its folder.
 FILE = "material.usda"
@@ -50,14 +50,14 @@ def maps(baked: Plan) -> dict[str, np.ndarray | float | tuple]:
     if varies:
         diffuse = sum(
             (1.0 if w is None else w[..., None])
-            * baked.colour_image(layer)
-            * lambert_scale(layer.sigma)
+            * as_lambert(baked.colour_image(layer), layer.sigma, layer.diffuse)
             for w, layer in zip(shares, baked.layers, strict=True)
         )
         out["diffuseColor"] = np.asarray(diffuse, np.float32)
     else:
         (layer,) = baked.layers
-        out["diffuseColor"] = tuple(c * lambert_scale(layer.sigma) for c in layer.colour)
+        colour = as_lambert(layer.colour, layer.sigma, layer.diffuse)
+        out["diffuseColor"] = tuple(float(c) for c in colour)
     if len(baked.layers) > 1 and glazes:
         spec = sum(w * _f0(layer.ior) for w, layer in glazes)
         out["specularColor"] = np.repeat(np.asarray(spec, np.float32)[..., None], 3, -1)

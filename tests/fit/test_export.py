@@ -24,6 +24,7 @@ from fit.export.bake import plan
 from fit.export.mapping import (
     EON_TABLE,
     GGX_TABLE,
+    eon_lambert_factor,
     eon_roughness,
     fit_eon,
     fit_ggx,
@@ -200,6 +201,59 @@ def test_materialx_single_glaze(tmp_path):
     (surface,) = [n for n in doc.getNodes() if n.getCategory() == "open_pbr_surface"]
     assert surface.getInputValue("specular_roughness") == pytest.approx(ggx_roughness(0.0625), 1e-5)
     assert sorted(p.name for p in path.parent.iterdir()) == ["material.mtlx"]
+
+
+def eon_preset(folder: Path, kind: str = "glaze") -> Path:
+    colour = "pigment" if kind == "glaze" else "reflectance"
+    table = {"type": kind, colour: [0.7, 0.4, 0.1], "sigma": 0.6, "diffuse": "eon"}
+    return save_preset(build_material(table, folder / "eon.toml"), folder / "eon.toml")
+
+
+def test_an_eon_layer_goes_to_openpbr_as_it_is(tmp_path):
+    """OpenPBR's diffuse lobe is EON: a layer with `diffuse = "eon"` keeps its roughness and
+    colour (the qualitative model's sigma goes through the fitted table instead)."""
+    import MaterialX as mx
+
+    path = export(eon_preset(tmp_path), "materialx", tmp_path / "mtlx")
+    doc = mx.createDocument()
+    mx.readFromXmlFile(doc, str(path))
+    (surface,) = [n for n in doc.getNodes() if n.getCategory() == "open_pbr_surface"]
+    assert surface.getInputValue("base_diffuse_roughness") == pytest.approx(0.6, abs=1e-6)
+    assert list(surface.getInputValue("base_color")) == pytest.approx([0.7, 0.4, 0.1], abs=1e-6)
+
+
+def test_an_eon_layer_becomes_a_lambertian_of_its_albedo(tmp_path):
+    """USD's and portable Mitsuba's Lambertian gets EON's hemispherical albedo per channel:
+    `eon_lambert_factor` against the plugin's own directional albedo, integrated over incidence
+    (Gauss-Legendre in cos theta, Monte Carlo per direction)."""
+    import drjit as dr
+    from pxr import Usd, UsdShade
+
+    colour = np.array([0.7, 0.4, 0.1])
+    rgb = {"type": "rgb", "value": list(colour)}
+    bsdf = mi.load_dict({"type": "oren_nayar", "sigma": 0.6, "diffuse": "eon", "reflectance": rgb})
+    nodes, weights = np.polynomial.legendre.leggauss(6)
+    n = 1 << 18
+    rng = np.random.default_rng(3)
+    hemispherical = np.zeros(3)
+    for node, weight in zip(nodes, weights, strict=True):
+        mu = 0.5 * (node + 1)  # cos theta in (0, 1); weight 2 mu d mu
+        si = dr.zeros(mi.SurfaceInteraction3f, n)
+        si.wi = mi.Vector3f(float(np.sqrt(1 - mu * mu)), 0.0, float(mu))
+        si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
+        u = rng.random((3, n), dtype=np.float32)
+        _, value = bsdf.sample(mi.BSDFContext(), si, mi.Float(u[0]), mi.Point2f(u[1], u[2]))
+        hemispherical += 0.5 * weight * 2 * mu * np.asarray(value).mean(axis=1)
+    factor = eon_lambert_factor(colour, 0.6)
+    np.testing.assert_allclose(colour * factor, hemispherical, rtol=4e-3)
+    assert np.all(factor < 1.0) and eon_lambert_factor(1.0, 0.6) == pytest.approx(1.0)
+    path = export(eon_preset(tmp_path, "oren_nayar"), "usd", tmp_path / "usd")
+    stage = Usd.Stage.Open(str(path))
+    shader = UsdShade.Shader(stage.GetPrimAtPath("/Material/PreviewSurface"))
+    np.testing.assert_allclose(shader.GetInput("diffuseColor").Get(), colour * factor, rtol=1e-5)
+    xml = export(eon_preset(tmp_path, "oren_nayar"), "mitsuba", tmp_path / "xml", portable=True)
+    loaded = mi.traverse(mi.load_file(str(xml)))
+    np.testing.assert_allclose(np.ravel(loaded["reflectance.value"]), colour * factor, rtol=1e-5)
 
 
 # USD ----------------------------------------------------------------------------------------------

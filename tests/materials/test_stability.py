@@ -237,8 +237,14 @@ def traverse_key(spec: ParamSpec) -> str:
 
 
 def layer_cases(decl: PluginDecl, slow_variants: bool):
-    for i, variant in enumerate(choice_variants(decl)):
-        marks = [pytest.mark.slow] if i and slow_variants else []
+    """Every choice variant's parameters; with `slow_variants`, only the defaults and the EON
+    diffuse lobe (a model of its own, not a variant of one formula) in the default run."""
+    variants = choice_variants(decl)
+    fast = [variants[0]]
+    if "diffuse" in decl.options:
+        fast.append({**variants[0], "diffuse": "eon"})
+    for variant in variants:
+        marks = [pytest.mark.slow] if variant not in fast and slow_variants else []
         for spec in decl.params.values():
             if spec.kind != "texture":
                 name = "-".join([decl.name, *variant.values(), spec.key])
@@ -253,7 +259,7 @@ def test_layer_bsdf_at_bounds(decl, variant, spec):
     """A layer BSDF (glaze, oren_nayar) with one parameter at and next to its bounds (RGB ones
     black or white in every channel), the others mid-range. Optional parameters are built
     whenever given, 0 included (a config leaves them out at 0). The default choice options run
-    by default, the other combinations in the slow run."""
+    by default (and the EON diffuse lobe), the other combinations in the slow run."""
     bsdf = mi.load_dict(plugin_dict(decl, {spec.key: spec.default}, **variant))
     check_bsdf(bsdf, traverse_key(spec), spec, eval_fn, f"{decl.name} {variant} {spec.key}")
 
