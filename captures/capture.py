@@ -91,6 +91,9 @@ class Capture:
     truth: dict[str, float | list[float]] = field(default_factory=dict)
     path: Path | None = None
     warnings: list[str] = field(default_factory=list)
+    truth_options: dict[str, str] = field(default_factory=dict)
+    """The options of the model the truth holds values of, by key (`glaze.diffuse = "eon"`: a
+    peer's diffuse roughness is EON's): a fit whose material differs does not score them."""
 
     def scene_of(self, view: int) -> Scene:
         """The scene as seen by one view (its camera; its own lights if it has them)."""

@@ -26,7 +26,8 @@ def peer_capture(scene_json: str | Path) -> Capture:
     (PNG, TIFF, JPEG) is taken as sRGB-encoded, with a warning (a renderer's display output). The
     truth holds the material table's keys that are present (`base_color`, `specular_roughness`,
     `ior`, `diffuse_roughness`); a missing one is a warning, not an error. A diffuse roughness
-    above 0 is Cycles' EON roughness, not the glaze's sigma: no truth for sigma then."""
+    above 0 is Cycles' EON roughness: the glaze's sigma with `diffuse = "eon"`
+    (`Capture.truth_options`), not the qualitative Oren-Nayar's."""
     scene = load_peer_scene(scene_json)
     views, warnings = [], []
     for camera, path in zip(scene.cameras, scene.meta["images"], strict=True):
@@ -84,16 +85,12 @@ def peer_capture(scene_json: str | Path) -> Capture:
         if name == "specular_roughness":  # Cycles' roughness r: Beckmann alpha = r^2
             floats = [floats[0] ** 2]
         truth[key] = floats if size > 1 else floats[0]
+    options = {}
     if truth.get("glaze.sigma", 0.0) > 0:
         # Cycles' diffuse roughness is the roughness of Fujii's improved Oren-Nayar with the
-        # OpenPBR multiple-scattering term (EON), a number in [0, 1]; the glaze's sigma is the
-        # qualitative Oren-Nayar's facet slope in radians: not the same parameter
-        del truth["glaze.sigma"]
-        warnings.append(
-            f"{scene_json}: material.diffuse_roughness = {material['diffuse_roughness']} is "
-            "Cycles' (EON) roughness, not the glaze's Oren-Nayar sigma (radians): glaze.sigma "
-            "has no truth here, and base_color is scored against a slightly different diffuse lobe"
-        )
+        # OpenPBR multiple-scattering term (EON), a number in [0, 1]: the glaze's sigma with
+        # `diffuse = "eon"`, not the qualitative Oren-Nayar's facet slope in radians
+        options["glaze.diffuse"] = "eon"
     if missing:
         warnings.append(
             f"{scene_json}: the material table has no {', '.join(missing)}: those parameters "
@@ -101,7 +98,7 @@ def peer_capture(scene_json: str | Path) -> Capture:
         )
     for message in warnings:
         log.warning(message)
-    return Capture(scene, views, truth, Path(scene_json), warnings)
+    return Capture(scene, views, truth, Path(scene_json), warnings, options)
 
 
 def _integer_levels(path: Path) -> int | None:

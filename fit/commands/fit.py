@@ -122,8 +122,23 @@ def check_output(out: Path, cfg: FitConfig, resume: bool, force: bool) -> None:
 def check_truth(capture: Capture, free: list[Free], path, material=None) -> None:
     """A `[truth]` value of the wrong size fails before any work (not after the fit); a key
     that names no parameter of the fitted `material` is a warning (it is not scored), with the
-    closest key where one is near (a typo)."""
+    closest key where one is near (a typo). Where the truth is a model's other than the
+    material's (`Capture.truth_options`: a peer's EON diffuse lobe), a warning names the option
+    to set and the values it depends on are not scored."""
     if material is not None:
+        for key, choice in capture.truth_options.items():
+            if material.options.get(key, choice) != choice:
+                layer = key.rsplit(".", 1)[0]
+                scored = [k for k in capture.truth if k.startswith(f"{layer}.sigma")]
+                for name in scored:
+                    del capture.truth[name]
+                log.warning(
+                    f"{path}: the truth is for {key} = {choice!r} (the lobe its renderer "
+                    f"used) but the material has {material.options[key]!r}: "
+                    f"{', '.join(scored) or 'nothing'} not scored, and the colours are fitted "
+                    f"with another lobe; set {key.rsplit('.', 1)[1]} = {choice!r} on the "
+                    f"{layer} layer to match it"
+                )
         known = sorted(material.params)
         unknown = [k for k in capture.truth if k not in known and not parse_key(k).emitter]
         others = []

@@ -391,18 +391,19 @@ def test_a_peer_material_table_may_lack_keys(tmp_path):
     np.testing.assert_allclose(capture.views[0].image, 0.2, rtol=1e-3)  # EXR: linear as stored
 
 
-def test_a_peer_diffuse_roughness_is_not_the_glaze_sigma(tmp_path):
-    """Cycles' diffuse roughness (EON's r in [0, 1]) is not the Oren-Nayar sigma in radians: 0
-    (Lambert) is the truth sigma = 0, anything else gives sigma no truth, with a warning."""
+def test_a_peer_diffuse_roughness_is_the_eon_sigma(tmp_path):
+    """Cycles' diffuse roughness is EON's r in [0, 1]: the truth of the glaze's sigma with
+    `diffuse = "eon"` (recorded in `truth_options`); 0 (Lambert) is sigma 0 in either lobe."""
     material = {"base_color": [0.5, 0.4, 0.3], "specular_roughness": 0.2, "ior": 1.5}
     lambert = _peer_folder(tmp_path / "a", "view_00.exr", {**material, "diffuse_roughness": 0.0})
     rough = _peer_folder(tmp_path / "b", "view_00.exr", {**material, "diffuse_roughness": 0.5})
     for folder in ("a", "b"):
         write_image(tmp_path / folder / "view_00.exr", np.full((6, 8, 3), 0.2, np.float32))
-    assert peer_capture(lambert).truth["glaze.sigma"] == 0.0
+    capture = peer_capture(lambert)
+    assert capture.truth["glaze.sigma"] == 0.0 and capture.truth_options == {}
     capture = peer_capture(rough)
-    assert "glaze.sigma" not in capture.truth and capture.truth["glaze.ior"] == 1.5
-    assert any("Cycles' (EON) roughness" in w for w in capture.warnings)
+    assert capture.truth["glaze.sigma"] == 0.5 and capture.truth["glaze.ior"] == 1.5
+    assert capture.truth_options == {"glaze.diffuse": "eon"}
 
 
 def test_an_8_bit_peer_view_masks_only_the_object(tmp_path):

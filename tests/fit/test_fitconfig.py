@@ -22,6 +22,7 @@ def test_peer_config_loads(shared_data):
         "glaze.pigment": [0.5, 0.5, 0.5],
         "glaze.roughness": 0.2,
         "glaze.ior": 1.3,
+        "glaze.sigma": 0.3,
     }
 
 
