@@ -22,6 +22,8 @@ fov_x_deg = 39.6
 
 [truth]                      # synthetic captures only, used to score fits
 "glaze.roughness" = 0.0625
+[truth_options]              # the options the truth's values mean something under
+"glaze.diffuse" = "qualitative"
 ```
 """
 
@@ -204,6 +206,9 @@ class Manifest(StrictModel):
     """The photographs ([[views]])."""
     truth: dict[str, TruthValue] = Field(default_factory=dict)
     """Synthetic captures only: the true parameter values, to score fits."""
+    truth_options: dict[str, str] = Field(default_factory=dict)
+    """The options of the model the truth's values belong to (`"glaze.diffuse" = "eon"`: its
+    sigma is EON's roughness): a fit with another option does not score those values."""
 
     @model_validator(mode="after")
     def _complete(self):
@@ -311,7 +316,9 @@ def load_capture(path: str | Path) -> Capture:
             )
     for message in warnings:
         log.warning(message)
-    capture = Capture(scene, views, dict(manifest.truth), path, warnings)
+    capture = Capture(
+        scene, views, dict(manifest.truth), path, warnings, dict(manifest.truth_options)
+    )
     capture.check_factor(settings.downscale, f"{path}: capture.downscale")
     return capture.downscaled(settings.downscale)
 
@@ -343,7 +350,13 @@ def _toml_value(value) -> str:
     raise TypeError(f"cannot write {value!r} to TOML")
 
 
-def manifest_text(capture_table: dict, scene_table: dict, views: list[dict], truth: dict) -> str:
+def manifest_text(
+    capture_table: dict,
+    scene_table: dict,
+    views: list[dict],
+    truth: dict,
+    truth_options: dict | None = None,
+) -> str:
     """The TOML text of a manifest (flat values, nested tables one level deep)."""
     lines = ["# layerfit capture manifest", "", "[capture]"]
     lines += [f"{k} = {_toml_value(v)}" for k, v in capture_table.items()]
@@ -370,4 +383,7 @@ def manifest_text(capture_table: dict, scene_table: dict, views: list[dict], tru
         lines += ["[views.camera]"] + [f"{k} = {_toml_value(v)}" for k, v in view["camera"].items()]
     if truth:
         lines += ["", "[truth]"] + [f'"{k}" = {_toml_value(v)}' for k, v in truth.items()]
+    if truth_options:
+        lines += ["", "[truth_options]"]
+        lines += [f'"{k}" = {_toml_value(v)}' for k, v in truth_options.items()]
     return "\n".join(lines) + "\n"

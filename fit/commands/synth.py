@@ -95,8 +95,14 @@ def synthesize(
                 )
             write_image(staging / name, image)
             views.append({"image": name, "exposure_ev": ev, "camera": camera_to_table(camera)})
+        # the diffuse lobe gives `sigma` its meaning (radians, or EON's roughness)
+        lobes = {k: v for k, v in material.options.items() if k.endswith(".diffuse")}
         text = manifest_text(
-            {"encoding": encoding}, scene_to_table(scene, staging), views, material.values()
+            {"encoding": encoding},
+            scene_to_table(scene, staging),
+            views,
+            material.values(),
+            lobes,
         )
         (staging / "capture.toml").write_text(text, encoding="utf-8")
     return out

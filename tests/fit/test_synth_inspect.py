@@ -132,3 +132,23 @@ def test_contact_sheet_without_silhouette(tmp_path):
     capture = load_capture(synthesize(scene, cfg.material, tmp_path / "cap", spp=4))
     sheet = contact_sheet(capture, None, tmp_path / "s.png")
     assert sheet.stat().st_size > 5_000
+
+
+def test_synth_records_the_diffuse_lobe_its_truth_belongs_to(tmp_path, caplog):
+    """A capture rendered with the EON lobe says so (`[truth_options]`): a fit with the
+    qualitative lobe warns and does not score sigma against EON's roughness; one with EON does."""
+    from fit.commands.fit import check_truth
+    from fit.material import build_material
+
+    _, scene = small_sphere()
+    scene = dataclasses.replace(scene, cameras=scene.cameras[:1])
+    table = {"type": "glaze", "sigma": 0.5, "diffuse": "eon"}
+    out = synthesize(scene, build_material(table, "<truth>"), tmp_path / "cap", spp=2)
+    assert '[truth_options]\n"glaze.diffuse" = "eon"' in (out / "capture.toml").read_text()
+    capture = load_capture(out)
+    assert capture.truth_options == {"glaze.diffuse": "eon"}
+    check_truth(capture, [], out, build_material(table, "<fit>"))
+    assert capture.truth["glaze.sigma"] == 0.5 and not caplog.records
+    check_truth(capture, [], out, build_material({**table, "diffuse": "qualitative"}, "<fit>"))
+    assert "glaze.sigma" not in capture.truth
+    assert "set diffuse = 'eon' on the glaze layer" in caplog.records[0].getMessage()
