@@ -43,8 +43,12 @@ def test_frozen_renders_equal_unfrozen_for_every_camera(kind):
         a, b = frozen.render(x, 3, 4), plain.render(x, 3, 4)
         assert a.max() > 0
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+        # the reverse pass's scatter-adds sum in a thread-dependent order: each component is
+        # compared to a thousandth of the largest (roughness's once differed by 0.19 % of itself,
+        # 0.004 % of the pigment's)
+        grad_frozen, grad_plain = frozen.vjp(x, 3, 4, cotangent), plain.vjp(x, 3, 4, cotangent)
         np.testing.assert_allclose(
-            frozen.vjp(x, 3, 4, cotangent), plain.vjp(x, 3, 4, cotangent), rtol=1e-3, atol=1e-5
+            grad_frozen, grad_plain, rtol=1e-3, atol=1e-3 * np.abs(grad_plain).max()
         )
 
 
