@@ -127,18 +127,20 @@ def check_truth(capture: Capture, free: list[Free], path, material=None) -> None
     to set and the values it depends on are not scored."""
     if material is not None:
         for key, choice in capture.truth_options.items():
-            if material.options.get(key, choice) != choice:
-                layer = key.rsplit(".", 1)[0]
-                scored = [k for k in capture.truth if k.startswith(f"{layer}.sigma")]
-                for name in scored:
-                    del capture.truth[name]
-                log.warning(
-                    f"{path}: the truth is for {key} = {choice!r} (the lobe its renderer "
-                    f"used) but the material has {material.options[key]!r}: "
-                    f"{', '.join(scored) or 'nothing'} not scored, and the colours are fitted "
-                    f"with another lobe; set {key.rsplit('.', 1)[1]} = {choice!r} on the "
-                    f"{layer} layer to match it"
-                )
+            have = material.options.get(key, choice)
+            if have == choice:
+                continue
+            layer, _, option = key.rpartition(".")
+            # the diffuse lobe gives sigma its meaning (radians, or EON's roughness)
+            dropped = [k for k in capture.truth if option == "diffuse" and k == f"{layer}.sigma"]
+            for name in dropped:
+                del capture.truth[name]
+            scored = f"{', '.join(dropped)} not scored" if dropped else "scores compare two models"
+            log.warning(
+                f"{path}: the truth was made with {key} = {choice!r}, the material has "
+                f"{have!r} ({scored}); set {option} = {choice!r} on the {layer or 'material'} "
+                "layer to fit the same model"
+            )
         known = sorted(material.params)
         unknown = [k for k in capture.truth if k not in known and not parse_key(k).emitter]
         others = []
