@@ -19,6 +19,15 @@ from .weights import validity
 log = logging.getLogger(__name__)
 
 
+#: The model the shared peer targets declare (`material.model`): the glaze with the paper's
+#: coupling and exact Fresnel, its diffuse lobe Cycles' (EON with `diffuse_roughness` > 0).
+PEER_MODEL = (
+    "mix(fresnel_dielectric(ior, shading normal), oren_nayar(base_color, diffuse_roughness), "
+    "beckmann_reflection(alpha = specular_roughness**2, white))"
+)
+GLAZE_MODEL = "".join(PEER_MODEL.split())
+
+
 def peer_capture(scene_json: str | Path) -> Capture:
     """The peer target (`scene.json` + its views) as a capture with its `[truth]`.
 
@@ -85,6 +94,12 @@ def peer_capture(scene_json: str | Path) -> Capture:
         if name == "specular_roughness":  # Cycles' roughness r: Beckmann alpha = r^2
             floats = [floats[0] ** 2]
         truth[key] = floats if size > 1 else floats[0]
+    model = material.get("model")
+    if isinstance(model, str) and "".join(model.split()) != GLAZE_MODEL:
+        warnings.append(
+            f"{scene_json}: material.model = {model!r} is not the glaze's model ({PEER_MODEL}): "
+            "its values are scored against a different BSDF, expect the fit to differ"
+        )
     options = {}
     if truth.get("glaze.sigma", 0.0) > 0:
         # Cycles' diffuse roughness is the roughness of Fujii's improved Oren-Nayar with the

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 
@@ -460,3 +461,22 @@ def test_a_mask_stored_as_codes_0_and_1_reads_as_a_mask(tmp_path):
     out.close()
     mask = read_mask(tmp_path / "mask.png")
     assert mask.sum() == 6 and mask[2:4, 3:6].all()
+
+
+def test_a_peer_model_other_than_the_glaze_is_a_warning(tmp_path, shared_data):
+    """The shared targets' `material.model` is the glaze (no warning, whatever the spacing); a
+    target made with another BSDF (GGX here) says that its scores compare two models."""
+    from captures.importers import PEER_MODEL
+
+    shared = json.loads((shared_data / "peer-cycles" / "torus-amber" / "scene.json").read_text())
+    assert "".join(shared["material"]["model"].split()) == "".join(PEER_MODEL.split())
+    material = {"base_color": [0.5, 0.4, 0.3], "specular_roughness": 0.2, "ior": 1.5}
+    material["diffuse_roughness"] = 0.0
+    for name, model, warned in (
+        ("same", PEER_MODEL.replace(", ", ","), False),
+        ("ggx", PEER_MODEL.replace("beckmann", "ggx"), True),
+    ):
+        path = _peer_folder(tmp_path / name, "view_00.exr", {**material, "model": model})
+        write_image(tmp_path / name / "view_00.exr", np.full((6, 8, 3), 0.2, np.float32))
+        warnings = peer_capture(path).warnings
+        assert any("is not the glaze's model" in w for w in warnings) == warned, warnings
