@@ -136,11 +136,13 @@ def check_truth(capture: Capture, free: list[Free], path, material=None) -> None
             for name in dropped:
                 del capture.truth[name]
             scored = f"{', '.join(dropped)} not scored" if dropped else "scores compare two models"
-            log.warning(
+            message = (
                 f"{path}: the truth was made with {key} = {choice!r}, the material has "
                 f"{have!r} ({scored}); set {option} = {choice!r} on the {layer or 'material'} "
                 "layer to fit the same model"
             )
+            log.warning(message)
+            capture.warnings.append(message)  # in the summary and the report too
         known = sorted(material.params)
         unknown = [k for k in capture.truth if k not in known and not parse_key(k).emitter]
         others = []
@@ -493,6 +495,8 @@ def _summary(cfg, capture, held, start, result, wall, panels, interrupted) -> di
         ],
         "outcomes": [r.as_dict() for r in result.reports],
         "seed": cfg.seed,
+        # the material's structural choices (lobes, coupling, Fresnel, noise scales)
+        "options": dict(cfg.material.options),
         "holdout": [capture.views[i].name for i in held],
         "start": start,
         "values": result.values,

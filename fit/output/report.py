@@ -250,6 +250,10 @@ def write_report(
         "<h2>Parameters</h2><p class='meta'><span class='poor'>poorly determined</span>"
         "<span class='off'>|error| &gt; 3 std</span></p>"
     )
+    choices = {k: v for k, v in (summary.get("options") or {}).items() if isinstance(v, str)}
+    if choices:
+        model = ", ".join(f"{k} = {v}" for k, v in choices.items())
+        page.append(f"<p class='meta'>model: {_e(model)}</p>")
     head = ["key", "start", "fitted", "\u00b1 std", "truth", "error", "error / std"]
     page.append(_table(head, _parameter_rows(summary)))
 

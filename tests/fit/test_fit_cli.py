@@ -64,6 +64,7 @@ def test_fit_command_writes_a_run_folder(tmp_path):
     assert len(summary["history"]) == 31  # the Adam steps, then the BFGS phase's final loss
     assert summary["wall_time_s"] > 0 and len(summary["std"]["glaze.pigment"]) == 3
     assert summary["holdout"] == ["view_01"] and "mitsuba" in summary["software"]
+    assert summary["options"]["glaze.diffuse"] == "qualitative"
     views = {v["name"]: v for v in summary["views"]}
     assert views["view_01"]["held_out"] and not views["view_00"]["held_out"]
     assert all(0 < v["rmse"] < 0.5 for v in views.values())  # 64-spp renders: noisy highlights
@@ -75,6 +76,7 @@ def test_fit_command_writes_a_run_folder(tmp_path):
     assert preset.provenance["std"]["glaze.pigment"] == summary["std"]["glaze.pigment"]
     html = (run / "report.html").read_text()
     assert "held out" in html and (run / "report").is_dir()
+    assert "glaze.diffuse = qualitative" in html  # the model's choices beside the parameters
     assert not (run / "checkpoint.npz").exists()
     # the folder is never overwritten by accident: refused before any work
     again = run_cli("fit", tmp_path / "fit.toml", "--out", run, timeout=300)
