@@ -74,10 +74,11 @@ _FON_1 = 0.5 - 2.0 / (3.0 * dr.pi)
 _FON_2 = 2.0 / 3.0 - 28.0 / (15.0 * dr.pi)
 
 
-def _fon_loss(cos_theta, r):
-    """`(1 - E_FON(mu)) (1 + c1 r) / r`: the share of light that Fujii's model does not reflect,
-    per unit roughness, from OpenPBR's polynomial fit of `G / pi` (within 0.0004 of the exact
-    albedo); never negative (the fit dips 0.0004 below zero at grazing angles)."""
+def _fon_loss(cos_theta):
+    """`(1 - E_FON(mu)) (1 + c1 r) / r`, the same at every roughness r: the share of light that
+    Fujii's model does not reflect, from OpenPBR's polynomial fit of `G / pi` (the albedo within
+    0.0005 of the exact one at r = 1, measured); never negative (the fit dips 0.0004 below zero
+    at grazing angles)."""
     m = 1.0 - dr.clip(cos_theta, 0.0, 1.0)
     m2 = m * m
     g_over_pi = 0.0571085289 * m + 0.491881867 * m2 + m2 * (-0.332181442 * m + 0.0714429953 * m2)
@@ -99,5 +100,5 @@ def eon(wi, wo, r, albedo):
     single = a * (1.0 + r * s / t)
     average = a * (1.0 + _FON_2 * r)
     rho_ms = albedo * albedo * average / (1.0 - albedo * (1.0 - average))
-    multi = rho_ms * (r * a / (_FON_1 - _FON_2)) * _fon_loss(wi.z, r) * _fon_loss(wo.z, r)
+    multi = rho_ms * (r * a / (_FON_1 - _FON_2)) * _fon_loss(wi.z) * _fon_loss(wo.z)
     return dr.inv_pi * (albedo * single + multi)
