@@ -34,6 +34,7 @@ import numpy as np
 from captures import CaptureError, InputError, open_capture
 from captures.capture import MIN_SIDE, Capture
 from captures.images import TEXTURE_SUFFIXES, write_image
+from materials.params import LAYER_PLUGINS, ChoiceOption
 
 from ..config import FitConfig
 from ..material import (
@@ -119,6 +120,15 @@ def check_output(out: Path, cfg: FitConfig, resume: bool, force: bool) -> None:
         ) from None
 
 
+#: Every layer plugin's choice options and their choices, by option name (`diffuse`, ...).
+CHOICES = {
+    o.key: o.choices
+    for decl in LAYER_PLUGINS.values()
+    for o in decl.options.values()
+    if isinstance(o, ChoiceOption)
+}
+
+
 def check_truth(capture: Capture, free: list[Free], path, material=None) -> None:
     """A `[truth]` value of the wrong size fails before any work (not after the fit); a key
     that names no parameter of the fitted `material` is a warning (it is not scored), with the
@@ -127,10 +137,20 @@ def check_truth(capture: Capture, free: list[Free], path, material=None) -> None
     to set and the values it depends on are not scored."""
     if material is not None:
         for key, choice in capture.truth_options.items():
+            layer, _, option = key.rpartition(".")
+            known = CHOICES.get(option, ())
+            if not known:
+                raise CaptureError(
+                    f"{path}: truth_options.{key}: {option!r} is no layer option; name one of "
+                    f"{', '.join(CHOICES)} (as <layer>.<option>), or remove the key"
+                )
+            if choice not in known:
+                raise CaptureError(
+                    f"{path}: truth_options.{key} = {choice!r}; give one of {', '.join(known)}"
+                )
             have = material.options.get(key, choice)
             if have == choice:
                 continue
-            layer, _, option = key.rpartition(".")
             # the diffuse lobe gives sigma its meaning (radians, or EON's roughness)
             dropped = [k for k in capture.truth if option == "diffuse" and k == f"{layer}.sigma"]
             for name in dropped:

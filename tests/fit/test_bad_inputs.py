@@ -925,6 +925,30 @@ CASES: list[Case] = [
         ("capture.toml", "truth.glaze.pigment", "3 numbers"),
     ),
     (
+        "fit-truth-options-bad-choice",
+        lambda d: (
+            edit(
+                d / "cap" / "capture.toml",
+                '"glaze.diffuse" = "qualitative"',
+                '"glaze.diffuse" = "x"',
+            )
+            or ["fit", d / "fit.toml", "--out", d / "run"]
+        ),
+        ("capture.toml", "truth_options.glaze.diffuse", "qualitative, eon"),
+    ),
+    (
+        "fit-truth-options-unknown-option",
+        lambda d: (
+            edit(
+                d / "cap" / "capture.toml",
+                '"glaze.diffuse" = "qualitative"',
+                '"glaze.lobe" = "eon"',
+            )
+            or ["fit", d / "fit.toml", "--out", d / "run"]
+        ),
+        ("capture.toml", "truth_options.glaze.lobe", "diffuse"),
+    ),
+    (
         "fit-free-twice",
         fit_cfg('free = ["glaze.roughness"]', 'free = ["glaze.roughness", "glaze.roughness"]'),
         ("fit.toml", "fit.free", "more than once"),
