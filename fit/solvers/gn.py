@@ -54,6 +54,20 @@ class GNOptions(Options):
     """The largest change of any solver coordinate in one step."""
     average: float = Field(0.5, ge=0.0, le=1.0)
     """Fraction of the last iterates averaged into the result (Polyak)."""
+    gradient: Literal["control", "reverse"] = "control"
+    """Each step's gradient. `reverse`: the residual `r` of a fresh render times its reverse
+    pass (another seed), `J_B^T r`. `control`: the residual's mean over the phase's last steps,
+    `m` (`CONTROL_WINDOW`), goes through the reverse pass, and what the step's image adds to it
+    through the curvature's own Jacobian `J` (the refreshes' mean): `J^T (r - m) + J_B^T m`.
+    Same cost. Its expectation is the plain gradient's where `m` is the expected residual (so the
+    fixed point stays the expected loss's optimum: the Jacobian's error multiplies only `r - m`,
+    zero on average), but the reverse pass's noise, which multiplies the image's in `J_B^T r`
+    (alpha 0.02 on a sphere: a 16-spp gradient's Newton step has a standard deviation of 105 %
+    of alpha, the image's noise alone about 20 %), now multiplies `m` only: the target's noise
+    and the misfit. The image's noise meets the Jacobian's mean, not the reverse pass's noise.
+    With `J` alone (no `J_B^T m`) the fixed point moves by `J`'s error times the target's
+    noise: on the recovery sweep's sphere and torus at alpha 0.01-0.02 (256-spp targets) that
+    ended -36 to -48 % (README, "Fitting")."""
 
 
 #: With `primal_spp = "auto"` where the render's noise is at least `AUTO_RATIO` times the rest of
@@ -77,6 +91,9 @@ def sample_split(problem, u, spp: int, seed: int, downscale: int) -> tuple[int, 
 MAX_NOISE_SHARE = 15 / 16
 #: How many standard deviations of the two Jacobians' cross product `_curvature` keeps above it.
 CAUTION = 1.0
+#: With `gradient = "control"`: the steps whose residuals make its running mean `m` (the mean
+#: of all so far for the first steps, then an exponential mean of this weight).
+CONTROL_WINDOW = 8
 
 
 def _curvature(j1: np.ndarray, j2: np.ndarray) -> np.ndarray:
@@ -108,9 +125,10 @@ def _curvature(j1: np.ndarray, j2: np.ndarray) -> np.ndarray:
 
 class GaussNewton(AbstractSolver):
     """Each step: the loss's gradient from a render with a fresh seed (its adjoint decorrelated,
-    as Adam's), times the inverse of a Gauss-Newton curvature `J^T J` rendered every `refresh`
-    steps (two Jacobians of half `jacobian_spp` with yet other seeds, their noise discounted:
-    `_curvature`), a fraction `eta` of that step.
+    as Adam's; by default with the step image's noise taken through the curvature's Jacobian,
+    `GNOptions.gradient`), times the inverse of a Gauss-Newton curvature `J^T J` rendered every
+    `refresh` steps (two Jacobians of half `jacobian_spp` with yet other seeds, their noise
+    discounted: `_curvature`), a fraction `eta` of that step.
 
     Under Monte Carlo noise Adam normalises each coordinate by its gradient noise: where the
     image barely depends on a parameter (a sharp highlight's width, alpha 0.02 on a 96 x 72
@@ -171,6 +189,14 @@ class GaussNewton(AbstractSolver):
             return 0.5 * jnp.dot(r, r)
 
         value_and_grad = jax.jit(jax.value_and_grad(loss))
+
+        def projected(u, seed, mean):
+            r = residual(u, seed)
+            return jnp.dot(jax.lax.stop_gradient(mean), r), r
+
+        # (J_B^T m, r) from one render and its reverse pass
+        projected_grad = jax.jit(jax.grad(projected, has_aux=True))
+        mean = None if resume is None else resume.get("mean_residual")
         history, tail, gradients, rejected, first = [], [], [], 0, 0
         model = linear_model(problem, downscale)
         # (image, values, the means of the phase's two series of physical Jacobian renders)
@@ -199,15 +225,20 @@ class GaussNewton(AbstractSolver):
                     j2 = linear[3] + (j2 - linear[3]) / k
                 linear = (image, x, j1, j2)
             image, x, j1, j2 = linear
-            inverse = self._inverse(
-                _curvature(
-                    np.asarray(model(u, image, j1, x)[1], np.float64),
-                    np.asarray(model(u, image, j2, x)[1], np.float64),
-                ),
-                options,
-            )
-            value, grad = value_and_grad(jnp.asarray(u), jnp.int32(step_seed))
-            value, grad = float(value), np.asarray(grad, np.float64)
+            jac1, jac2 = (np.asarray(model(u, image, j, x)[1], np.float64) for j in (j1, j2))
+            inverse = self._inverse(_curvature(jac1, jac2), options)
+            if options.gradient == "control":
+                if mean is None:
+                    mean = np.zeros(problem.target(downscale)[0].size, np.float32)
+                grad_mean, r = projected_grad(jnp.asarray(u), jnp.int32(step_seed), mean)
+                r = np.asarray(r, np.float64)
+                grad = 0.5 * (jac1 + jac2).T @ (r - mean) + np.asarray(grad_mean, np.float64)
+                value = 0.5 * float(r @ r)
+                if np.all(np.isfinite(r)):
+                    mean = (mean + (r - mean) / min(i + 1, CONTROL_WINDOW)).astype(np.float32)
+            else:
+                value, grad = value_and_grad(jnp.asarray(u), jnp.int32(step_seed))
+                value, grad = float(value), np.asarray(grad, np.float64)
             delta = -options.eta * (inverse @ grad)
             delta *= min(1.0, options.max_step / max(float(np.max(np.abs(delta))), 1e-30))
             new_u = u + delta.astype(np.float32)
@@ -236,6 +267,7 @@ class GaussNewton(AbstractSolver):
                         "n_tail_gradients": len(gradients),
                         "rejected": rejected,
                         "samples": [primal_spp, grad_spp],
+                        **({} if mean is None else {"mean_residual": mean}),
                     }
                 )
         out = averaged_result(self.name, problem, u, tail, None, history, steps, rejected)

@@ -538,6 +538,7 @@ def test_gauss_newton_converges_and_resumes(problem):
                     np.array(t) for t in state["tail_gradients"][: state["n_tail_gradients"]]
                 ],
                 rejected=state["rejected"],
+                mean_residual=np.array(state["mean_residual"]),
             )
 
     whole = _gn(problem, u0, 24, offer=offer)
@@ -580,6 +581,48 @@ def test_gauss_newton_curvature_follows_the_transform(problem, monkeypatch):
     result = _gn(problem, problem.unconstrained(start), 16, refresh=4, average=0.0)
     assert result.values["glaze.roughness"] == pytest.approx(0.0105, rel=0.01)
     np.testing.assert_allclose(result.values["glaze.pigment"], truth["glaze.pigment"], atol=1e-3)
+
+
+@pytest.mark.parametrize("gradient", ["control", "reverse"])
+def test_gauss_newton_fixed_point_ignores_the_curvatures_jacobian_error(
+    problem, monkeypatch, gradient
+):
+    """Each step's gradient takes the step image's part of the residual through the
+    curvature's Jacobian (`gradient = "control"`), whose error must not move the fixed point:
+    on an exact linear image plus a misfit no parameter explains (a target's noise), with the
+    curvature's Jacobian 40 % off, `gn` ends at the least-squares optimum, where the Jacobian
+    alone (`J^T r`, no reverse pass) would end elsewhere (checked: far from it)."""
+    target, sqrt_w = problem.target(1)
+    rng = np.random.default_rng(3)
+    jac = rng.normal(size=(target.size, 5)).astype(np.float32) * 0.05
+    wrong = jac * (1 + 0.4 * rng.normal(size=jac.shape)).astype(np.float32)
+    # a misfit along the Jacobian's error (where it matters), plus noise
+    misfit = 0.3 * (wrong - jac) @ np.ones(5, np.float32)
+    misfit += 0.005 * rng.normal(size=target.size).astype(np.float32)
+    x_ref = np.array([0.1, 0.22, 0.55, 0.1, 1.5], np.float32)
+
+    def image(x):
+        return jnp.asarray(target + misfit) + jnp.asarray(jac) @ (x - jnp.asarray(x_ref))
+
+    class Wrong:
+        def jacobian(self, values, seed, spp):
+            return np.asarray(image(jnp.asarray(values))), wrong
+
+    monkeypatch.setattr(problem, "render_fn", lambda *a, **k: lambda x, seed: image(x))
+    monkeypatch.setattr(problem, "renderer", lambda downscale=1: Wrong())
+    a, w = jac * sqrt_w[:, None], wrong * sqrt_w[:, None]
+    optimum = x_ref - np.linalg.solve(a.T @ a, a.T @ (sqrt_w * misfit))
+    jacobian_only = x_ref - np.linalg.solve(w.T @ a, w.T @ (sqrt_w * misfit))
+    assert np.max(np.abs(jacobian_only - optimum)) > 0.02  # the case: the error matters
+    start = {"glaze.pigment": [0.2, 0.3, 0.4], "glaze.roughness": 0.15, "glaze.ior": 1.4}
+    result = _gn(problem, problem.unconstrained(start), 40, average=0.0, gradient=gradient)
+    fitted = np.array(
+        [
+            *result.values["glaze.pigment"],
+            *[result.values[k] for k in ("glaze.roughness", "glaze.ior")],
+        ]
+    )
+    np.testing.assert_allclose(fitted, optimum, atol=2e-3)
 
 
 def test_gauss_newton_primal_spp_renders_the_image_apart(problem, monkeypatch):
