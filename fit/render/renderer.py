@@ -3,9 +3,11 @@ values, and its derivatives (reverse: a vector-Jacobian product; forward: the fu
 
 from __future__ import annotations
 
+import functools
 import gc
 import logging
 import re
+import threading
 from contextlib import contextmanager
 
 import drjit as dr
@@ -167,6 +169,24 @@ GRAD_SEED_OFFSET = 0x5EED1
 #: failed"), printing a warning per call from its 10th recording and running about 20 % slower
 #: than plain (a user's report, two 48x36 views).
 RERECORD_LIMIT = 8
+
+
+#: One render at a time in a process. The JAX bridge's callbacks run on XLA's threads, and
+#: callbacks that do not depend on each other run at once: `gn`'s control gradient, whose reverse
+#: pass does not need the step's image, started it while that image still rendered on another
+#: thread (seen: a reverse pass entered while a render ran). A `Renderer` sets its scenes' values
+#: before each pass, and Dr.Jit used from two threads at once aborted (`jit_var(...): unknown
+#: variable!`; the process then hung): the cup's main job, two runs in six, 2026-12-02.
+_ONE_AT_A_TIME = threading.RLock()
+
+
+def _serialised(method):
+    @functools.wraps(method)
+    def wrapper(*args, **kwargs):
+        with _ONE_AT_A_TIME:
+            return method(*args, **kwargs)
+
+    return wrapper
 
 
 class _Frozen:
@@ -358,6 +378,7 @@ class Renderer:
         """A sensor's seed: views rendered apart get independent samples."""
         return mi.UInt32((int(seed) + 7919 * g + 104729 * sensor) % 2**32)
 
+    @_serialised
     def render(self, values: np.ndarray, seed: int, spp: int) -> np.ndarray:
         out = [None] * len(self.shapes)
         for g, group in enumerate(self.groups):
@@ -371,6 +392,7 @@ class Renderer:
                     out[v] = part
         return np.concatenate(out)
 
+    @_serialised
     def vjp(self, values: np.ndarray, seed: int, spp: int, cotangent: np.ndarray) -> np.ndarray:
         """Gradient of `<cotangent, render(values)>` with respect to `values`."""
         grad = np.zeros(self.n_params, np.float32)
@@ -405,6 +427,7 @@ class Renderer:
         dr.isolate_grad() scope`)."""
         self._set(group, values)
 
+    @_serialised
     def jacobian(
         self, values: np.ndarray, seed: int, spp: int, jacobian_spp: int | None = None
     ) -> tuple[np.ndarray, np.ndarray]:

@@ -98,6 +98,55 @@ def test_bridge_gradient_equals_mitsubas_own(problem):
         np.testing.assert_allclose(grad, own, rtol=0.1, atol=0.1 * np.abs(own).max())
 
 
+def test_a_renderer_never_renders_on_two_threads_at_once(problem, monkeypatch):
+    """The bridge's callbacks run on XLA's threads, and ones that do not depend on each other
+    may run at once (in the cup's main job a reverse pass entered while an image rendered on
+    another thread, 2026-12-02). A `Renderer` sets its scenes' values before each pass, and
+    Dr.Jit aborted when used from two threads at once, so its passes run one at a time: here
+    from two threads, each pass held long enough for the other to start if it could."""
+    import threading
+    import time
+
+    renderer = problem.renderer()
+    group = renderer.groups[0]
+    state = {"inside": 0, "most": 0}
+    lock = threading.Lock()
+
+    def held(fn):
+        def wrapper(*args):
+            with lock:
+                state["inside"] += 1
+                state["most"] = max(state["most"], state["inside"])
+            time.sleep(0.05)
+            try:
+                return fn(*args)
+            finally:
+                with lock:
+                    state["inside"] -= 1
+
+        return wrapper
+
+    monkeypatch.setattr(group, "primal", held(group.primal))
+    monkeypatch.setattr(group, "reverse", held(group.reverse))
+    x, ones = truth_vector(), np.ones(renderer.size, np.float32)
+    errors = []
+
+    def work(k):
+        try:
+            for i in range(3):
+                renderer.render(x, 10 * k + i, 4)
+                renderer.vjp(x, 10 * k + i, 4, ones)
+        except Exception as err:  # reported below
+            errors.append(err)
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and state["most"] == 1, (errors, state)
+
+
 @pytest.mark.parametrize("component, h, rtol", [(1, 0.01, 0.03), (4, 0.01, 0.1)])
 def test_jvp_matches_finite_differences(problem, component, h, rtol):
     """Forward-mode tangents equal central differences of renders with a shared seed (pigment
