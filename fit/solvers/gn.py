@@ -67,7 +67,7 @@ class GNOptions(Options):
     and the misfit. The image's noise meets the Jacobian's mean, not the reverse pass's noise.
     With `J` alone (no `J_B^T m`) the fixed point moves by `J`'s error times the target's
     noise: on the recovery sweep's sphere and torus at alpha 0.01-0.02 (256-spp targets) that
-    ended -36 to -48 % (README, "Fitting")."""
+    ended alpha +5.5, -36, +25 and -48 % (README, "Fitting")."""
 
 
 #: With `primal_spp = "auto"` where the render's noise is at least `AUTO_RATIO` times the rest of
