@@ -182,7 +182,11 @@ class GaussNewton(AbstractSolver):
         else:
             primal_spp, grad_spp = options.primal_spp or spp, spp
         render = problem.render_fn("reverse", primal_spp, downscale, grad_spp=grad_spp)
-        residual = residuals(problem, render, downscale, independent_gains=True)
+        # the gains' derivative from an independent render: `J_B^T r` has the step's image in
+        # both factors (biased low); the control gradient never multiplies the image by itself
+        # (`J` and `m` come from other renders), so it saves that render
+        control = options.gradient == "control"
+        residual = residuals(problem, render, downscale, independent_gains=not control)
 
         def loss(u, seed):
             r = residual(u, seed)
