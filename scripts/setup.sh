@@ -1,16 +1,19 @@
 #!/usr/bin/env bash
 # Set up layerfit on Debian/Ubuntu: libLLVM >= 16 (Dr.Jit's CPU backend), python3-venv, and a .venv
-# with the project installed (editable, with test tools). Safe to run again; fast when nothing changed.
-# `--with-chromium` (or LAYERFIT_CHROMIUM=1; scripts/test.sh passes it) also installs Debian's chromium
-# for the HTML report test, if /usr/bin/chromium is missing.
+# with the project installed (editable). Safe to run again; fast when nothing changed.
+# `--with-tests` also installs the test tools (pytest, hypothesis, playwright, ruff: the `test` extra);
+# `--with-chromium` (or LAYERFIT_CHROMIUM=1) Debian's chromium for the HTML report test, if
+# /usr/bin/chromium is missing. scripts/test.sh passes both; the main job (scripts/run.sh) neither.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 with_chromium=${LAYERFIT_CHROMIUM:-0}
+with_tests=0
 for arg in "$@"; do
   case "$arg" in
     --with-chromium) with_chromium=1 ;;
-    *) echo "setup: unknown option $arg (known: --with-chromium)" >&2; exit 2 ;;
+    --with-tests) with_tests=1 ;;
+    *) echo "setup: unknown option $arg (known: --with-tests, --with-chromium)" >&2; exit 2 ;;
   esac
 done
 
@@ -58,10 +61,14 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 
-stamp=.venv/.layerfit-installed
+# a stamp per install (the project; the project with its test tools): a copy of the
+# pyproject.toml it installed, so an edited one installs again
+target=. stamp=.venv/.layerfit-installed
+if [ "$with_tests" = 1 ]; then target='.[test]' stamp=.venv/.layerfit-installed-test; fi
 if [ ! -f "$stamp" ] || ! cmp -s pyproject.toml "$stamp"; then
   echo "setup: installing Python packages into .venv (about a minute the first time)"
   .venv/bin/python -m pip install -q --upgrade pip
-  .venv/bin/python -m pip install -q -e '.[test]'
+  .venv/bin/python -m pip install -q -e "$target"
   cp pyproject.toml "$stamp"
+  cp pyproject.toml .venv/.layerfit-installed  # the test tools' install holds the project's
 fi

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
-# Set up (with chromium, for the HTML report test), then run the default test suite (under 10 minutes
+# Set up (with the test tools, and chromium for the HTML report test), then run the default test suite (under 10 minutes
 # on 2 cores). `--slow` runs the heavy cases.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup.sh --with-chromium
+bash scripts/setup.sh --with-tests --with-chromium
 if [ "${1:-}" = "--slow" ]; then shift; exec .venv/bin/python -m pytest -m slow "$@"; fi
 exec .venv/bin/python -m pytest "$@"
