@@ -19,6 +19,14 @@ MAX_UNCERTAINTY_PARAMS = 64
 CROSS_SEED_OFFSET = 0xC2055
 
 
+#: Where the two Jacobians leave a direction undetermined, each is averaged with this many
+#: more renders of its own (other seeds), one at a time until every direction is determined.
+#: The main job's seed 4 (`configs/cup-fit.toml`, 32 spp) reported alpha, ior, the pigment's
+#: red and the stain's green undetermined with all their errors within the targets.
+UNDETERMINED_RETRIES = 1
+#: Seed offset of each retry's pair of renders.
+RETRY_SEED_OFFSET = 0x7E7A1
+
 #: A coordinate whose share of an undetermined direction (its unit eigenvector's component)
 #: exceeds this is undetermined; below it, the direction is another parameters' trade.
 UNDETERMINED_LOADING = 0.1
@@ -132,8 +140,9 @@ def uncertainty(
     curvature, and the standard deviation came out 7x too small. So the Jacobian is rendered
     twice with independent seeds at `spp / 2` each, and the curvature is their symmetrised cross
     product `(J1^T J2 + J2^T J1) / 2`, whose expectation is the noise-free one. A direction
-    whose cross curvature is not positive (its noise larger than its signal) is undetermined:
-    its standard deviation is reported as infinite.
+    whose cross curvature is not positive (its noise larger than its signal) gets more samples
+    (`UNDETERMINED_RETRIES`: each Jacobian averaged with another render of its own), and if it is
+    still not positive it is undetermined: its standard deviation is reported as infinite.
 
     The meat comes from the two renders' mean Jacobian and per pixel the squared residual less
     the renders' own noise, `((r1 + r2) / 2)^2 - ((r1 - r2) / 2)^2 = r1 r2` (unbiased for the
@@ -158,13 +167,24 @@ def uncertainty(
     half = max(spp // 2, 1)
     r1, jac1 = linearised(problem, u, half, seed, downscale)
     r2, jac2 = linearised(problem, u, half, seed + CROSS_SEED_OFFSET, downscale)
+    bread, undetermined = _inverse_determined(_cross(jac1, jac2))
+    for k in range(1, UNDETERMINED_RETRIES + 1):
+        if not undetermined.any():
+            break
+        # more samples where the noise hid a direction: each series the mean of its renders
+        # (still independent of the other, so their cross product stays unbiased)
+        more = seed + k * RETRY_SEED_OFFSET
+        r3, jac3 = linearised(problem, u, half, more, downscale)
+        r4, jac4 = linearised(problem, u, half, more + CROSS_SEED_OFFSET, downscale)
+        r1, jac1 = r1 + (r3 - r1) / (k + 1), jac1 + (jac3 - jac1) / (k + 1)
+        r2, jac2 = r2 + (r4 - r2) / (k + 1), jac2 + (jac4 - jac2) / (k + 1)
+        bread, undetermined = _inverse_determined(_cross(jac1, jac2))
     # d(values)/du: the material's transforms, then a block for the gains (each view's gain
     # depends on every gain coordinate through the first view's)
     dxdu = np.asarray(jax.jacfwd(lambda v: to_physical(problem.free, v, jnp))(u[:n]), np.float64)
     if problem.gain_views:
         dxdu = block_diag(dxdu, problem.gain_jacobian(u[n:]))
     n_obs = int(np.count_nonzero(np.any((jac1 != 0) | (jac2 != 0), axis=1)))
-    bread, undetermined = _inverse_determined(_cross(jac1, jac2))
     cov = n_obs / max(n_obs - jac1.shape[1], 1) * bread @ _meat(jac1, jac2, r1, r2) @ bread
     if tail_gradients is not None and len(tail_gradients[0]) >= 2:
         cov += averaging_covariance(*tail_gradients, u, _cross(jac1, jac2), bread)

@@ -964,3 +964,40 @@ def test_a_resumed_schedule_shows_its_finished_phases(problem, tmp_path):
     assert calls[0] == (0, 2) and (1, 3) in calls
     # the resumed run's clock starts from the saved work (the summary's wall time: the run's)
     assert 0 < again.elapsed_before <= worked
+
+
+def test_an_undetermined_direction_gets_more_samples_before_it_is_reported(problem, monkeypatch):
+    """Where the uncertainty's two Jacobians leave a direction undetermined (their cross product
+    not positive: noise), each is averaged with one more render of its own before an infinite sd
+    is reported; a determined fit renders the two only. Spoiled: the renders' alpha columns are
+    t, -t (a negative cross curvature), then 3t and 3t (the means 2t and t: positive)."""
+    import importlib
+
+    module = importlib.import_module("fit.solvers.uncertainty")  # the package exports its function
+    real = module.linearised
+    calls, first = [], {}
+
+    def spoiled(problem, u, spp, seed, downscale=1):
+        r, jac = real(problem, u, spp, seed, downscale)
+        calls.append(seed)
+        if spoil:  # alpha's columns t, -t (cross curvature negative), then 3t, 3t
+            first.setdefault("alpha", jac[:, 3].copy())
+            jac = jac.copy()
+            jac[:, 3] = first["alpha"] * (1, -1, 3, 3)[len(calls) - 1]
+        return r, jac
+
+    monkeypatch.setattr(module, "linearised", spoiled)
+    u = problem.unconstrained(TRUTH)
+    spoil = False
+    std, _, _ = uncertainty(problem, u, spp=128, seed=5)
+    assert len(calls) == 2 and np.isfinite(std["glaze.roughness"])
+    calls.clear()
+    spoil = True
+    monkeypatch.setattr(module, "UNDETERMINED_RETRIES", 0)
+    std, _, flagged = uncertainty(problem, u, spp=128, seed=5)
+    assert len(calls) == 2 and std["glaze.roughness"] == np.inf and "glaze.roughness" in flagged
+    calls.clear()
+    monkeypatch.setattr(module, "UNDETERMINED_RETRIES", 1)
+    more, _, _ = uncertainty(problem, u, spp=128, seed=5)
+    assert len(calls) == 4 and len(set(calls)) == 4
+    assert np.isfinite(more["glaze.roughness"]) and more["glaze.roughness"] > 0
