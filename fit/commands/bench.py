@@ -49,18 +49,36 @@ class Table:
         return table
 
 
-def machine() -> str:
+def machine(cpuinfo: str | None = None) -> str:
+    """The machine a table was measured on: the CPU's model name, and where /proc/cpuinfo
+    says, its family, model and widest vector unit (two VMs both named "AMD EPYC" ran this
+    bench's fits 4x apart: CPU family 26 with AVX-512 and an older one), the core count, the
+    Mitsuba variant and version."""
     import os
 
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    cpu, details = platform.processor() or platform.machine(), {}
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            cpuinfo = ""
+    for line in cpuinfo.splitlines():  # the first processor's lines
+        key, _, value = (part.strip() for part in line.partition(":"))
+        if not key and details:
+            break
+        details.setdefault(key, value)
+    cpu = details.get("model name", cpu)
+    flags = set(details.get("flags", "").split())
+    simd = next((name for flag, name in SIMD if flag in flags), None)
+    extra = [f"family {details['cpu family']}" if "cpu family" in details else None]
+    extra += [f"model {details['model']}" if "model" in details else None, simd]
+    extra = [e for e in extra if e]
+    cpu = f"{cpu} ({', '.join(extra)})" if extra else cpu
     return f"{cpu}, {os.cpu_count()} cores, {mi.variant()}, mitsuba {mi.__version__}"
+
+
+#: The vector units Dr.Jit's LLVM backend can use, widest first (/proc/cpuinfo flag, name).
+SIMD = (("avx512f", "AVX-512"), ("avx2", "AVX2"), ("avx", "AVX"), ("sse4_2", "SSE4.2"))
 
 
 def _timed(scene: mi.Scene, spp: int, seed: int) -> float:

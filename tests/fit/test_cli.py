@@ -141,3 +141,21 @@ def test_a_malformed_results_file_is_one_line(tmp_path):
             _resumed(path, setting, "runs", "another setting", False)
     path.write_text(json.dumps({"setting": setting, "runs": {"a": {"seconds": 1.0}}}))
     assert _resumed(path, setting, "runs", "another setting", False) == {"a": {"seconds": 1.0}}
+
+
+def test_bench_tables_name_the_cpu_family_and_vector_unit():
+    """Two VMs both called "AMD EPYC" ran the same fits 4x apart (AVX-512 or not): a table's
+    machine line says the first processor's family, model and widest vector unit, and falls
+    back to the model name alone, or the platform's, where /proc/cpuinfo has less."""
+    from fit.commands.bench import machine
+
+    two = (
+        "processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 26\nmodel\t\t: 2\n"
+        "model name\t: AMD EPYC\nflags\t\t: fpu sse4_2 avx avx2 avx512f\n\n"
+        "processor\t: 1\ncpu family\t: 25\nmodel\t\t: 1\nmodel name\t: Other\nflags\t\t: avx\n"
+    )
+    assert machine(two).startswith("AMD EPYC (family 26, model 2, AVX-512), ")
+    intel = "model name\t: Intel Xeon\ncpu family\t: 6\nmodel\t\t: 85\nflags\t\t: sse4_2 avx2\n"
+    assert machine(intel).startswith("Intel Xeon (family 6, model 85, AVX2), ")
+    assert machine("model name\t: Bare CPU\n").startswith("Bare CPU, ")
+    assert " cores, " in machine("") and "mitsuba " in machine("")
