@@ -64,8 +64,10 @@ def machine(cpuinfo: str | None = None) -> str:
             cpuinfo = ""
     for line in cpuinfo.splitlines():  # the first processor's lines
         key, _, value = (part.strip() for part in line.partition(":"))
-        if not key and details:
-            break
+        if not key:  # a blank line ends a processor's block
+            if details:
+                break
+            continue
         details.setdefault(key, value)
     cpu = details.get("model name", cpu)
     flags = set(details.get("flags", "").split())

@@ -157,5 +157,5 @@ def test_bench_tables_name_the_cpu_family_and_vector_unit():
     assert machine(two).startswith("AMD EPYC (family 26, model 2, AVX-512), ")
     intel = "model name\t: Intel Xeon\ncpu family\t: 6\nmodel\t\t: 85\nflags\t\t: sse4_2 avx2\n"
     assert machine(intel).startswith("Intel Xeon (family 6, model 85, AVX2), ")
-    assert machine("model name\t: Bare CPU\n").startswith("Bare CPU, ")
+    assert machine("\nmodel name\t: Bare CPU\n").startswith("Bare CPU, ")
     assert " cores, " in machine("") and "mitsuba " in machine("")
