@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Set up (with the test tools, and chromium for the HTML report test), then run the default test suite (under 10 minutes
-# on 2 cores). `--slow` runs the heavy cases.
+# Set up (with the test tools, and chromium for the HTML report test), then run the default test
+# suite (under 10 minutes on 2 cores). `--slow` runs the heavy cases.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh --with-tests --with-chromium

@@ -71,14 +71,14 @@ def machine(cpuinfo: str | None = None) -> str:
         details.setdefault(key, value)
     cpu = details.get("model name", cpu)
     flags = set(details.get("flags", "").split())
-    simd = next((name for flag, name in SIMD if flag in flags), None)
-    extra = [f"family {details['cpu family']}" if "cpu family" in details else None]
-    extra += [f"model {details['model']}" if "model" in details else None, simd]
-    extra = [e for e in extra if e]
+    extra = [f"{name} {details[key]}" for key, name in CPU_FIELDS if key in details]
+    extra += [name for flag, name in SIMD if flag in flags][:1]
     cpu = f"{cpu} ({', '.join(extra)})" if extra else cpu
     return f"{cpu}, {os.cpu_count()} cores, {mi.variant()}, mitsuba {mi.__version__}"
 
 
+#: The /proc/cpuinfo fields a machine line names, and how.
+CPU_FIELDS = (("cpu family", "family"), ("model", "model"))
 #: The vector units Dr.Jit's LLVM backend can use, widest first (/proc/cpuinfo flag, name).
 SIMD = (("avx512f", "AVX-512"), ("avx2", "AVX2"), ("avx", "AVX"), ("sse4_2", "SSE4.2"))
 
