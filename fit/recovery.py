@@ -28,6 +28,9 @@ from captures.scene import Camera, Cup, ObjFile, RectLight, Scene, Sphere, bound
 ALPHA_REL, IOR_ABS, PIGMENT_ABS, MAX_SIGMAS = 0.05, 0.03, 0.02, 3.0
 
 #: The fits' start (the configs' and the tutorial loop's): grey, rough, low ior.
+#: Samples per pixel of a case's target.
+TARGET_SPP = 256
+
 START = {"glaze.pigment": [0.5, 0.5, 0.5], "glaze.roughness": 0.2, "glaze.ior": 1.3}
 KEYS = tuple(START)
 #: A case's values unless it varies them: the default job's blue glaze.
@@ -174,7 +177,7 @@ def glaze(values: dict, fresnel: str = "schlick"):
     return build_material(table, "<recovery>")
 
 
-def capture(case: Case, width: int = 96, height: int = 72, spp: int = 256, seed: int = 0):
+def capture(case: Case, width: int = 96, height: int = 72, spp: int = TARGET_SPP, seed: int = 0):
     """The case's synthetic capture: each view rendered at `spp` (truth in `capture.truth`)."""
     import mitsuba as mi
 
@@ -232,7 +235,7 @@ class Outcome:
 
     def as_dict(self) -> dict:
         """The outcome as strict JSON values (an undetermined, infinite sd as null)."""
-        std = {k: _map(v, lambda x: x if math.isfinite(x) else None) for k, v in self.std.items()}
+        std = {k: strict(v) for k, v in self.std.items()}
         return {
             "case": self.case.name,
             "truth": self.case.truth(),
@@ -247,9 +250,20 @@ class Outcome:
         }
 
 
+def case_target(case: Case, width: int, height: int) -> Capture:
+    """The case's target, rendered with seeds of its own: with shared ones, every case's fit
+    inherits the same noise realisation (the sweep's ior errors all came out positive)."""
+    return capture(case, width, height, seed=zlib.crc32(case.name.encode()) % 100_000)
+
+
 def _map(value, f):
     """`f` of a number, or of each number of a list."""
     return [f(x) for x in value] if isinstance(value, list) else f(value)
+
+
+def strict(value):
+    """A number, or each of a list, as strict JSON: an infinite one (undetermined) as null."""
+    return _map(value, lambda x: x if math.isfinite(x) else None)
 
 
 def recover(
@@ -264,15 +278,62 @@ def recover(
     from .material import resolve
     from .solvers import DEFAULT_SCHEDULE, Problem, run_schedule
 
-    # each case's target with its own seeds: with shared ones, every case's fit inherits the same
-    # noise realisation (the sweep's ior errors all came out positive)
-    target = target or capture(case, width, height, seed=zlib.crc32(case.name.encode()) % 100_000)
+    target = target or case_target(case, width, height)
     material = glaze(START)
     problem = Problem(target, material, resolve(material, list(KEYS)))
     began = time.perf_counter()
     result = run_schedule(problem, START, schedule or DEFAULT_SCHEDULE, seed)
     seconds = time.perf_counter() - began
     return Outcome(case, {k: result.values[k] for k in KEYS}, dict(result.std), seconds)
+
+
+#: Samples per pixel of each of `data_limit`'s two Jacobian renders, and its pairs of renders
+#: at the target's samples whose differences give a target's noise (Monte Carlo noise is heavy
+#: tailed: one pair's estimate of a 48x36 sphere's pigment sd varied 1.5x with its seeds).
+LIMIT_SPP, NOISE_PAIRS = 1024, 8
+
+
+def data_limit(
+    case: Case,
+    width: int = 96,
+    height: int = 72,
+    spp: int = LIMIT_SPP,
+    target_spp: int = TARGET_SPP,
+    seed: int = 0,
+) -> dict:
+    """What the case's targets allow: each parameter's standard deviation, over targets rendered
+    at `target_spp`, of the least-squares optimum against one (`H^-1 J^T e`, e a target's noise),
+    infinite where not determined. No fit: its own Monte Carlo error comes on top, whatever its
+    schedule.
+
+    J from two independent Jacobian renders of `spp` at the truth (their cross products: a
+    Jacobian's own noise would add to `J^T J` and to the meat), a target's per-pixel noise from
+    the differences of `NOISE_PAIRS` pairs of renders at `target_spp` (a pixel's channels share
+    their paths, so the meat sums each pixel's channels first, as the fit's uncertainty does)."""
+    from .material import as_dict, resolve
+    from .solvers import Problem
+    from .solvers.uncertainty import CROSS_SEED_OFFSET, cross_product, inverse_determined
+
+    material = glaze(START)
+    problem = Problem(case_target(case, width, height), material, resolve(material, list(KEYS)))
+    _, sqrt_w = problem.target()
+    renderer = problem.renderer()
+    truth = case.truth()
+    x = np.concatenate([np.ravel(truth[k]) for k in KEYS]).astype(np.float32)
+    j1, j2 = (
+        sqrt_w[:, None] * renderer.jacobian(x, s, spp)[1] for s in (seed, seed + CROSS_SEED_OFFSET)
+    )
+    p, meat = j1.shape[1], 0.0
+    for k in range(NOISE_PAIRS):
+        seeds = (seed + (2 * k + 1) * 0x51ED, seed + (2 * k + 2) * 0x51ED)
+        pair = (renderer.render(x, s, target_spp) for s in seeds)
+        noise = sqrt_w * np.subtract(*pair) / np.sqrt(2.0)
+        s1, s2 = ((j * noise[:, None]).reshape(-1, 3, p).sum(axis=1) for j in (j1, j2))
+        meat = meat + cross_product(s1, s2) / NOISE_PAIRS
+    bread, undetermined = inverse_determined(cross_product(j1, j2))
+    std = np.sqrt(np.clip(np.diag(bread @ meat @ bread), 0.0, None))
+    std[undetermined] = np.inf
+    return as_dict(problem.free, std)
 
 
 def calibration_rows(outcomes: list[Outcome]) -> list[list[str]]:

@@ -744,6 +744,20 @@ def recovery_table(
         outcomes.append(outcome)
         if progress:
             progress.advance(task)
+    # each miss: what its target allows at all (two Jacobian renders at the truth; saved, so a
+    # resumed sweep does not render them again)
+    limits = []
+    for outcome in outcomes:
+        if outcome.passed():
+            continue
+        entry = done[outcome.case.name]
+        if "limit" not in entry:
+            limit = recovery.data_limit(outcome.case, width, height)
+            entry["limit"] = {k: recovery.strict(v) for k, v in limit.items()}
+            write_text(results, json.dumps({"setting": setting, "cases": done}, indent=1))
+        sd = entry["limit"]["glaze.roughness"]
+        alpha = "undetermined" if sd is None else f"{100 * sd / outcome.case.roughness:.1f} %"
+        limits.append(f"{outcome.case.name}: {alpha}")
     passed = sum(o.passed() for o in outcomes)
     errors = [s for o in outcomes for k in recovery.KEYS for s in np.ravel(o.sigmas[k])]
     covered = sum(s <= recovery.MAX_SIGMAS for s in errors)
@@ -762,8 +776,16 @@ def recovery_table(
             f"{passed} of {len(outcomes)} cases within every target (alpha 5 % relative, ior "
             "0.03, pigment 0.02) and 3 sd; "
             f"{covered} of {len(errors)} parameter errors within 3 reported sd",
-            f"each case: the truth rendered at 256 spp, fitted from {recovery.START} with the "
-            f"default schedule ({schedule}); ✗ marks a miss",
+            f"each case: the truth rendered at {recovery.TARGET_SPP} spp, fitted from "
+            f"{recovery.START} with the default schedule ({schedule}); ✗ marks a miss",
+            *(
+                [
+                    "what the target's own noise allows alpha in each miss (its sd at the truth "
+                    f"from two {recovery.LIMIT_SPP}-spp Jacobians, no fit): " + "; ".join(limits)
+                ]
+                if limits
+                else []
+            ),
             machine(),
         ],
     )

@@ -32,7 +32,7 @@ RETRY_SEED_OFFSET = 0x7E7A1
 UNDETERMINED_LOADING = 0.1
 
 
-def _cross(a: np.ndarray, b: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
+def cross_product(a: np.ndarray, b: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
     """`(a^T W b + b^T W a) / 2`, W = diag(weight): unbiased for `E[a]^T W E[a]` when a and b
     are independent estimates of one matrix."""
     wb = b if weight is None else b * weight[:, None]
@@ -40,7 +40,7 @@ def _cross(a: np.ndarray, b: np.ndarray, weight: np.ndarray | None = None) -> np
     return 0.5 * (product + product.T)
 
 
-def _inverse_determined(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def inverse_determined(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The inverse of a symmetric matrix on the span of its clearly positive eigenvalues (above
     1e-9 of the largest), and which coordinates load on a direction that is not by more than
     `UNDETERMINED_LOADING` (undetermined)."""
@@ -167,7 +167,7 @@ def uncertainty(
     half = max(spp // 2, 1)
     r1, jac1 = linearised(problem, u, half, seed, downscale)
     r2, jac2 = linearised(problem, u, half, seed + CROSS_SEED_OFFSET, downscale)
-    bread, undetermined = _inverse_determined(_cross(jac1, jac2))
+    bread, undetermined = inverse_determined(cross_product(jac1, jac2))
     for k in range(1, UNDETERMINED_RETRIES + 1):
         if not undetermined.any():
             break
@@ -178,7 +178,7 @@ def uncertainty(
         r4, jac4 = linearised(problem, u, half, more + CROSS_SEED_OFFSET, downscale)
         r1, jac1 = r1 + (r3 - r1) / (k + 1), jac1 + (jac3 - jac1) / (k + 1)
         r2, jac2 = r2 + (r4 - r2) / (k + 1), jac2 + (jac4 - jac2) / (k + 1)
-        bread, undetermined = _inverse_determined(_cross(jac1, jac2))
+        bread, undetermined = inverse_determined(cross_product(jac1, jac2))
     # d(values)/du: the material's transforms, then a block for the gains (each view's gain
     # depends on every gain coordinate through the first view's)
     dxdu = np.asarray(jax.jacfwd(lambda v: to_physical(problem.free, v, jnp))(u[:n]), np.float64)
@@ -187,7 +187,7 @@ def uncertainty(
     n_obs = int(np.count_nonzero(np.any((jac1 != 0) | (jac2 != 0), axis=1)))
     cov = n_obs / max(n_obs - jac1.shape[1], 1) * bread @ _meat(jac1, jac2, r1, r2) @ bread
     if tail_gradients is not None and len(tail_gradients[0]) >= 2:
-        cov += averaging_covariance(*tail_gradients, u, _cross(jac1, jac2), bread)
+        cov += averaging_covariance(*tail_gradients, u, cross_product(jac1, jac2), bread)
     elif extra_variance is not None:
         cov[np.diag_indices_from(cov)] += np.asarray(extra_variance, np.float64)
     cov[undetermined, :] = cov[:, undetermined] = 0.0

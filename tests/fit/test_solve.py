@@ -794,19 +794,19 @@ def test_cross_curvature_is_unbiased_where_one_jacobians_is_not():
     """Two noisy Jacobians' symmetrised cross product averages to the noise-free `J^T J`; one
     Jacobian's own product adds its noise (the bias that hid alpha's uncertainty); a column of
     pure noise comes out undetermined."""
-    from fit.solvers.uncertainty import _cross, _inverse_determined
+    from fit.solvers.uncertainty import cross_product, inverse_determined
 
     rng = np.random.default_rng(0)
     mean = rng.normal(size=(400, 3))
     mean[:, 2] *= 0.02  # a parameter the image barely depends on
     draws = [mean + rng.normal(size=mean.shape) for _ in range(400)]
-    cross = np.mean([_cross(draws[2 * k], draws[2 * k + 1]) for k in range(200)], axis=0)
+    cross = np.mean([cross_product(draws[2 * k], draws[2 * k + 1]) for k in range(200)], axis=0)
     own = np.mean([d.T @ d for d in draws], axis=0)
     truth = mean.T @ mean
     assert abs(cross[2, 2] - truth[2, 2]) < 0.2 * truth[2, 2] + 2.0
     assert own[2, 2] > 50 * truth[2, 2]
     keep = np.diag([1.0, 1.0, 0.0])  # the third parameter does not act at all
-    _, undetermined = _inverse_determined(keep @ _cross(mean, mean) @ keep)
+    _, undetermined = inverse_determined(keep @ cross_product(mean, mean) @ keep)
     assert undetermined.tolist() == [False, False, True]
 
 
