@@ -5,8 +5,11 @@ of alpha (all else at the truth) against a 256-spp target's own Monte Carlo nois
 
 The change is rendered twice with independent seeds (each with common random numbers across
 the change) and their product summed, so the renders' own noise does not add to it; the target's
-per-pixel variance comes from two 256-spp renders (3x3 mean). alpha's sd from the images alone
-is about 5 % / sqrt(chi^2). README, "Recovery over the range".
+per-pixel variance comes from two 256-spp renders (3x3 mean). 5 % / sqrt(chi^2) is alpha's sd
+for a fit that weighs each pixel by its inverse noise variance, not for layerfit's loss (its
+limit: `fit.recovery.data_limit`), and the box-filtered variance of one pair is too low in a
+highlight, so it reads low (README, "Recovery over the range"; BENCHMARKS, "What the targets
+allow").
 """
 
 import sys
