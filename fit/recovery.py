@@ -27,10 +27,10 @@ from captures.scene import Camera, Cup, ObjFile, RectLight, Scene, Sphere, bound
 #: channel, and each error within 3 reported standard deviations.
 ALPHA_REL, IOR_ABS, PIGMENT_ABS, MAX_SIGMAS = 0.05, 0.03, 0.02, 3.0
 
-#: The fits' start (the configs' and the tutorial loop's): grey, rough, low ior.
 #: Samples per pixel of a case's target.
 TARGET_SPP = 256
 
+#: The fits' start (the configs' and the tutorial loop's): grey, rough, low ior.
 START = {"glaze.pigment": [0.5, 0.5, 0.5], "glaze.roughness": 0.2, "glaze.ior": 1.3}
 KEYS = tuple(START)
 #: A case's values unless it varies them: the default job's blue glaze.
