@@ -330,6 +330,10 @@ def data_limit(
         noise = sqrt_w * np.subtract(*pair) / np.sqrt(2.0)
         s1, s2 = ((j * noise[:, None]).reshape(-1, 3, p).sum(axis=1) for j in (j1, j2))
         meat = meat + cross_product(s1, s2) / NOISE_PAIRS
+    # the cross products are unbiased but may come out indefinite: their positive part, as the
+    # fit's meat (a negative diagonal would read as a parameter known exactly)
+    values, vectors = np.linalg.eigh(meat)
+    meat = (vectors * np.clip(values, 0.0, None)) @ vectors.T
     bread, undetermined = inverse_determined(cross_product(j1, j2))
     std = np.sqrt(np.clip(np.diag(bread @ meat @ bread), 0.0, None))
     std[undetermined] = np.inf
