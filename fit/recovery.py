@@ -309,10 +309,16 @@ def data_limit(
     J from two independent Jacobian renders of `spp` at the truth (their cross products: a
     Jacobian's own noise would add to `J^T J` and to the meat), a target's per-pixel noise from
     the differences of `NOISE_PAIRS` pairs of renders at `target_spp` (a pixel's channels share
-    their paths, so the meat sums each pixel's channels first, as the fit's uncertainty does)."""
+    their paths, so the meat sums each pixel's channels first and keeps its positive part, as
+    the fit's uncertainty does: `pixel_meat`)."""
     from .material import as_dict, resolve
     from .solvers import Problem
-    from .solvers.uncertainty import CROSS_SEED_OFFSET, cross_product, inverse_determined
+    from .solvers.uncertainty import (
+        CROSS_SEED_OFFSET,
+        cross_product,
+        inverse_determined,
+        pixel_meat,
+    )
 
     material = glaze(START)
     problem = Problem(case_target(case, width, height), material, resolve(material, list(KEYS)))
@@ -323,17 +329,15 @@ def data_limit(
     j1, j2 = (
         sqrt_w[:, None] * renderer.jacobian(x, s, spp)[1] for s in (seed, seed + CROSS_SEED_OFFSET)
     )
-    p, meat = j1.shape[1], 0.0
-    for k in range(NOISE_PAIRS):
-        seeds = (seed + (2 * k + 1) * 0x51ED, seed + (2 * k + 2) * 0x51ED)
-        pair = (renderer.render(x, s, target_spp) for s in seeds)
-        noise = sqrt_w * np.subtract(*pair) / np.sqrt(2.0)
-        s1, s2 = ((j * noise[:, None]).reshape(-1, 3, p).sum(axis=1) for j in (j1, j2))
-        meat = meat + cross_product(s1, s2) / NOISE_PAIRS
-    # the cross products are unbiased but may come out indefinite: their positive part, as the
-    # fit's meat (a negative diagonal would read as a parameter known exactly)
-    values, vectors = np.linalg.eigh(meat)
-    meat = (vectors * np.clip(values, 0.0, None)) @ vectors.T
+
+    def target_noise(k: int) -> np.ndarray:  # a target's noise: two renders' difference / sqrt(2)
+        a, b = (renderer.render(x, seed + (2 * k + i) * 0x51ED, target_spp) for i in (1, 2))
+        return sqrt_w * (a - b) / np.sqrt(2.0)
+
+    # every pair's terms stacked: the meat is their mean, its positive part taken once
+    noises = [target_noise(k) for k in range(NOISE_PAIRS)]
+    meat = pixel_meat(*(np.concatenate([j * e[:, None] for e in noises]) for j in (j1, j2)))
+    meat /= NOISE_PAIRS
     bread, undetermined = inverse_determined(cross_product(j1, j2))
     std = np.sqrt(np.clip(np.diag(bread @ meat @ bread), 0.0, None))
     std[undetermined] = np.inf

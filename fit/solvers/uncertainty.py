@@ -64,13 +64,22 @@ def _meat(jac1, jac2, r1, r2, channels: int = 3) -> np.ndarray:
     spread 0.98 % (ior 0.055), per channel the sandwich said 0.37 % (0.029), per pixel 0.63 %
     (0.050); 2x2 or 4x4 pixel blocks added nothing (the box filter keeps pixels apart)."""
     mean = 0.5 * (jac1 + jac2)
-    if len(r1) % channels:
+    return pixel_meat(
+        mean * np.asarray(r1, np.float64)[:, None],
+        mean * np.asarray(r2, np.float64)[:, None],
+        channels,
+    )
+
+
+def pixel_meat(a: np.ndarray, b: np.ndarray, channels: int = 3) -> np.ndarray:
+    """The positive part of `sum_p a_p^T b_p` (symmetrised), a_p and b_p the sums over a pixel's
+    `channels` consecutive rows of two independent series of per-residual gradient terms (rows:
+    residuals, columns: parameters); rows of one channel each where they do not divide."""
+    if len(a) % channels:
         channels = 1
-    p = mean.shape[1]
-    s1 = (mean * np.asarray(r1, np.float64)[:, None]).reshape(-1, channels, p).sum(axis=1)
-    s2 = (mean * np.asarray(r2, np.float64)[:, None]).reshape(-1, channels, p).sum(axis=1)
-    meat = s1.T @ s2
-    values, vectors = np.linalg.eigh(0.5 * (meat + meat.T))
+    p = a.shape[1]
+    sa, sb = (x.reshape(-1, channels, p).sum(axis=1) for x in (a, b))
+    values, vectors = np.linalg.eigh(cross_product(sa, sb))
     return (vectors * np.clip(values, 0.0, None)) @ vectors.T
 
 

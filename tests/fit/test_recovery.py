@@ -77,11 +77,13 @@ def test_calibration_table_resumes_and_refuses_a_foreign_file(tmp_path, monkeypa
     assert json.loads(results.read_text())["setting"]["size"] == [16, 12]
 
 
-def test_data_limit_follows_the_targets_noise():
+@pytest.mark.parametrize("shape", ["sphere", "torus"])
+def test_data_limit_follows_the_targets_noise(shape):
     """The sd a case's targets allow shrinks with their noise: 16x the target's samples, a
-    quarter of the sd (measured 4.1-5.0 over seeds and Jacobian samples: the noise's own
-    estimate from one pair of renders instead of eight gave 1.8-14)."""
-    case = recovery.Case("sphere", roughness=0.3, label="alpha 0.3")
+    quarter of the sd (measured 4.1-5.0 on the sphere over seeds and Jacobian samples: the
+    noise's own estimate from one pair of renders instead of eight gave 1.8-14); the analytic
+    sphere and the torus mesh."""
+    case = recovery.Case(shape, roughness=0.3, label="alpha 0.3")
     noisy, clean = (recovery.data_limit(case, 48, 36, spp=128, target_spp=spp) for spp in (16, 256))
     for key in ("glaze.pigment", "glaze.roughness", "glaze.ior"):
         ratio = np.ravel(noisy[key]) / np.ravel(clean[key])
