@@ -37,9 +37,10 @@ class GNOptions(Options):
     sphere against a 2048-spp target (128x96, three views, seeds 0-2): the default's averaged
     phase at 256 / 16 ended at a max error of 0.13-0.53 % against 0.36-1.35 % at 64 / 64, in
     1.1x the time; but over the recovery sweep the reported sd then missed 4 of 150 errors
-    (README, "Fitting"), so the default keeps one count. On the layered cup's photographs at
-    its truth (ratio infinite) 256 / 16 gave 1.4x the variance per second of 64 / 64 (its
-    reverse pass's own noise is larger: one layer picked per point)."""
+    (BENCHMARKS, "Fitting: the measurements behind the default"), so the default keeps one
+    count. On the layered cup's photographs at its truth (ratio infinite) 256 / 16 gave 1.4x
+    the variance per second of 64 / 64 (its reverse pass's own noise is larger: one layer picked
+    per point)."""
     refresh: PositiveInt = 10
     """Steps between curvature updates (a Jacobian render each)."""
     damping: PositiveFloat = 1e-3
@@ -67,7 +68,8 @@ class GNOptions(Options):
     and the misfit. The image's noise meets the Jacobian's mean, not the reverse pass's noise.
     With `J` alone (no `J_B^T m`) the fixed point moves by `J`'s error times the target's
     noise: on the recovery sweep's sphere and torus at alpha 0.01-0.02 (256-spp targets) that
-    ended alpha +5.5, -36, +25 and -48 % (README, "Fitting")."""
+    ended alpha +5.5, -36, +25 and -48 % (BENCHMARKS, "Fitting: the measurements behind the
+    default")."""
 
 
 #: With `primal_spp = "auto"` where the render's noise is at least `AUTO_RATIO` times the rest of

@@ -92,10 +92,10 @@ class Phase(BaseModel):
 #: sigmoid is flat); then the stochastic Gauss-Newton `gn` at full resolution, in two phases: 56
 #: steps of 16 spp relax (the mean of their last half handed on: their last iterate, handed on
 #: until 2026-12-01, wanders 0.012-0.028 around alpha 0.02 at 16 spp, and the averaged phase did
-#: not relax from it), 12 of 64 spp are averaged. A gradient's
-#: variance falls faster than 1 / spp (8x for 4x the samples at alpha 0.02; README "Fitting"),
-#: so the average is best taken over few steps of many samples; relaxing takes steps (24 x 64
-#: spp alone left ior -0.03 and -0.11 off at alpha 0.6 and 1, in a low-ior basin). `gn`
+#: not relax from it), 12 of 64 spp are averaged. A gradient's variance falls faster than 1 / spp
+#: (8x for 4x the samples at alpha 0.02; BENCHMARKS, "Fitting: the measurements behind the
+#: default"), so the average is best taken over few steps of many samples; relaxing takes steps
+#: (24 x 64 spp alone left ior -0.03 and -0.11 off at alpha 0.6 and 1, in a low-ior basin). `gn`
 #: replaced a second Adam phase (60 x 32 spp, lr 0.02) that could not relax from where the
 #: first one left a weakly determined parameter: alpha 0.02 on a 160x120 sphere ended +12 % for
 #: one seed, and +24 to +127 % at alpha 0.01-0.02 on 96x72 (BENCHMARKS, "Recovery over the
@@ -120,7 +120,7 @@ def default_schedule(free: list[str]) -> tuple[Phase, ...]:
     """`DEFAULT_SCHEDULE` for these free keys: with a mask threshold free, its Adam phase is
     split, the first 30 steps holding the thresholds (colours first; `AdamOptions.hold`). On the
     cup, one seed's glaze threshold otherwise walked out of the noise's range in Adam's first
-    20 steps, where no gradient brings it back (README, "The main job")."""
+    20 steps, where no gradient brings it back (BENCHMARKS, "The main job over the sessions")."""
     if not any(fnmatch.fnmatchcase(k, MASK_THRESHOLDS) for k in free):
         return DEFAULT_SCHEDULE
     adam, *rest = DEFAULT_SCHEDULE
