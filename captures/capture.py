@@ -316,6 +316,7 @@ def load_capture(path: str | Path) -> Capture:
             )
     for message in warnings:
         log.warning(message)
+    warnings += getattr(scene.geometry, "warnings", ())  # the mesh's, said as it was read
     capture = Capture(
         scene, views, dict(manifest.truth), path, warnings, dict(manifest.truth_options)
     )

@@ -42,6 +42,10 @@ class ObjFile:
 
     path: Path
     uvs: bool = True
+    face_normals: bool = False
+    """Shade each face by its own normal (flat) rather than normals interpolated over faces."""
+    warnings: tuple[str, ...] = field(default=(), compare=False)
+    """How the renderer's shading will differ from the object (`captures.geometry.check_obj`)."""
 
 
 @dataclass(frozen=True, eq=False)

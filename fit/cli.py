@@ -192,10 +192,9 @@ def render(
     except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)
-    import mitsuba as mi
 
+    from .render import load_scene, scene_dict
     from .render import render as render_image
-    from .render import scene_dict
 
     spp = spp or config_spp
     written = 0
@@ -203,7 +202,7 @@ def render(
     with _interruptible(lambda: f"wrote {written} of {n_files} images"), _progress() as bar:
         for view in range(views):
             task = bar.add_task(f"view {view}", total=spp)
-            loaded = mi.load_dict(scene_dict(the_scene, material.bsdf, view, spp))
+            loaded = load_scene(scene_dict(the_scene, material.bsdf, view, spp))
             image = render_image(loaded, spp, seed, lambda n, t=task: bar.update(t, completed=n))
             for path in paths[view]:
                 write_image(path, image)

@@ -179,15 +179,14 @@ def glaze(values: dict, fresnel: str = "schlick"):
 
 def capture(case: Case, width: int = 96, height: int = 72, spp: int = TARGET_SPP, seed: int = 0):
     """The case's synthetic capture: each view rendered at `spp` (truth in `capture.truth`)."""
-    import mitsuba as mi
 
-    from .render import render, scene_dict
+    from .render import load_scene, render, scene_dict
 
     scene = studio(case.shape, width, height)
     material = glaze(case.truth())
     views = []
     for i, camera in enumerate(scene.cameras):
-        loaded = mi.load_dict(scene_dict(scene, material, i, spp))
+        loaded = load_scene(scene_dict(scene, material, i, spp))
         image = render(loaded, spp, seed + 1000 * i)
         views.append(View(f"view_{i:02d}", image, np.ones((height, width), np.float32), camera))
     return Capture(scene, views, truth=case.truth())

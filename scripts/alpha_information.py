@@ -23,10 +23,9 @@ select_variant()
 import materials  # noqa: E402
 
 materials.register()
-import mitsuba as mi  # noqa: E402
 
 from fit import recovery  # noqa: E402
-from fit.render import render, scene_dict  # noqa: E402
+from fit.render import load_scene, render, scene_dict  # noqa: E402
 
 WIDTH, HEIGHT, CHANGE = 160, 120, 1.05
 
@@ -35,7 +34,7 @@ def images(case, spp, seed):
     scene = recovery.studio(case.shape, WIDTH, HEIGHT)
     material = recovery.glaze(case.truth())
     return [
-        render(mi.load_dict(scene_dict(scene, material, i, spp)), spp, seed + 1000 * i)
+        render(load_scene(scene_dict(scene, material, i, spp)), spp, seed + 1000 * i)
         for i in range(len(scene.cameras))
     ]
 

@@ -29,8 +29,6 @@ def main() -> None:
     if args.out.exists():
         parser.error(f"{args.out} exists; give a new folder")
 
-    import mitsuba as mi
-
     from fit.variant import select_variant
 
     select_variant()
@@ -39,7 +37,7 @@ def main() -> None:
     materials.register()
     from captures import load_peer_scene
     from captures.images import write_image
-    from fit.render import render, scene_dict
+    from fit.render import load_scene, render, scene_dict
 
     doc = json.loads(args.source.read_text())
     doc["material"]["diffuse_roughness"] = args.roughness
@@ -63,7 +61,7 @@ def main() -> None:
         "diffuse": "eon",
     }
     for view, path in enumerate(scene.meta["images"]):
-        image = render(mi.load_dict(scene_dict(scene, bsdf, view, args.spp)), args.spp, 100 + view)
+        image = render(load_scene(scene_dict(scene, bsdf, view, args.spp)), args.spp, 100 + view)
         write_image(tmp / Path(path).name, image)
     tmp.rename(args.out)
     print(f"wrote {args.out}")

@@ -18,7 +18,7 @@ import numpy as np
 from captures.errors import InputError
 
 from ..config import load_render_config
-from ..render import scene_dict
+from ..render import load_scene, scene_dict
 
 #: The scene the speed tables render (relative to the working directory: the repository's root).
 DEFAULT_SCENE = Path("configs/glazed-sphere.toml")
@@ -116,9 +116,7 @@ def bsdf_speed_table(spp: int = 64, repeats: int = 7, progress=None) -> Table:
             "diffuse",
         ),
     }
-    scenes = {
-        name: mi.load_dict(scene_dict(cfg.scene, b, 0, spp)) for name, (b, _) in bsdfs.items()
-    }
+    scenes = {name: load_scene(scene_dict(cfg.scene, b, 0, spp)) for name, (b, _) in bsdfs.items()}
     times = _interleaved(scenes, spp, repeats, progress, "bench: BSDF speed")
     median = {name: statistics.median(t) for name, t in times.items()}
     cam = cfg.scene.cameras[0]
@@ -167,7 +165,7 @@ def cup_speed_table(spp: int = 64, repeats: int = 5, size: int = 256, progress=N
     stack = cfg.material.bsdf
     materials = {"cup: 4-layer stack": stack}
     materials |= {f"{name} alone": stack[name] for name in stack["layers"].split(",")}
-    scenes = {name: mi.load_dict(scene_dict(scene, m, 0, spp)) for name, m in materials.items()}
+    scenes = {name: load_scene(scene_dict(scene, m, 0, spp)) for name, m in materials.items()}
     times = _interleaved(scenes, spp, repeats, progress, "bench: cup layers")
     median = {name: statistics.median(t) for name, t in times.items()}
     slowest = max((n for n in median if n.endswith("alone")), key=median.get)
@@ -420,7 +418,7 @@ def sphere_problem(size: int, config: Path = DEFAULT_SCENE, target_spp: int = 64
     cfg = load_render_config(config)
     camera = dataclasses.replace(cfg.scene.cameras[0], width=size, height=size)
     scene = dataclasses.replace(cfg.scene, cameras=(camera,))
-    target = render(mi.load_dict(scene_dict(scene, cfg.material, 0, target_spp)), target_spp, 99)
+    target = render(load_scene(scene_dict(scene, cfg.material, 0, target_spp)), target_spp, 99)
     capture = Capture(scene, [View("v", target, np.ones((size, size), np.float32), camera)])
     return Problem(capture, cfg.material, resolve(cfg.material, list(LONG_KEYS)))
 
@@ -820,7 +818,7 @@ def tutorial_loop(
     _, sqrt_w = problem.target()
     scenes, params, targets, weights, offset = [], [], [], [], 0
     for i, view in enumerate(capture.views):
-        scenes.append(mi.load_dict(scene_dict(capture.scene_of(i), problem.material, 0, 16)))
+        scenes.append(load_scene(scene_dict(capture.scene_of(i), problem.material, 0, 16)))
         params.append(mi.traverse(scenes[-1]))
         targets.append(mi.TensorXf(view.image))
         size = view.image.size
@@ -1247,8 +1245,8 @@ def held_out_error(shape: str, width: int, values: dict) -> float:
     )
     held = dataclasses.replace(studio, cameras=(camera,))
     truth = recovery.Case(shape).truth()
-    target = render(mi.load_dict(scene_dict(held, recovery.glaze(truth), 0, 256)), 256, 7)
-    fitted = render(mi.load_dict(scene_dict(held, recovery.glaze(values), 0, 256)), 256, 7)
+    target = render(load_scene(scene_dict(held, recovery.glaze(truth), 0, 256)), 256, 7)
+    fitted = render(load_scene(scene_dict(held, recovery.glaze(values), 0, 256)), 256, 7)
     mask = target.max(axis=2) > 0.2 * float(np.median(target))
     return float(np.sqrt(np.mean((fitted - target)[mask] ** 2)) / np.mean(target[mask]))
 

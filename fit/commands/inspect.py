@@ -4,20 +4,19 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import mitsuba as mi
 import numpy as np
 
 from captures.capture import Capture
 from captures.images import srgb_encode
 
 from ..output import pyplot, save_figure
-from ..render import coverage_dict, render
+from ..render import coverage_dict, load_scene, render
 
 
 def silhouettes(capture: Capture, spp: int = 16) -> list[np.ndarray]:
     """Each view's rendered object coverage in [0, 1]."""
     return [
-        render(mi.load_dict(coverage_dict(capture.scene_of(i), 0, spp)), spp)[..., 0]
+        render(load_scene(coverage_dict(capture.scene_of(i), 0, spp)), spp)[..., 0]
         for i in range(len(capture.views))
     ]
 

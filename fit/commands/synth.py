@@ -8,7 +8,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import mitsuba as mi
 import numpy as np
 
 from captures import Scene
@@ -19,7 +18,7 @@ from captures.scene import EnvMap, ObjFile
 from captures.schema import camera_to_table, scene_to_table
 
 from ..material import Material
-from ..render import render, scene_dict
+from ..render import load_scene, render, scene_dict
 
 FORMATS = {"exr": ("exr", "linear"), "png": ("png", "srgb"), "jpg": ("jpg", "srgb")}
 
@@ -75,7 +74,7 @@ def synthesize(
             scene = _replace_env(scene, target)
         views = []
         for i, camera in enumerate(scene.cameras):
-            loaded = mi.load_dict(scene_dict(scene, material.bsdf, i, spp))
+            loaded = load_scene(scene_dict(scene, material.bsdf, i, spp))
             image = render(
                 loaded, spp, seed + 1000 * i, (lambda n, i=i: progress(i, n)) if progress else None
             )

@@ -6,7 +6,7 @@ from .bake import bake_texture
 from .bridge import make_render
 from .image import render
 from .renderer import GRAD_SEED_OFFSET, Renderer
-from .scene import MATERIAL_PREFIX, coverage_dict, material_keys, scene_dict
+from .scene import MATERIAL_PREFIX, coverage_dict, load_scene, material_keys, scene_dict
 
 __all__ = [
     "GRAD_SEED_OFFSET",
@@ -14,6 +14,7 @@ __all__ = [
     "Renderer",
     "bake_texture",
     "coverage_dict",
+    "load_scene",
     "make_render",
     "material_keys",
     "render",

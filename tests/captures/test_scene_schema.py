@@ -259,6 +259,33 @@ def rect_light(**extra) -> dict:
         ),
         ({"lights": [], "environment": [0, 0, 0]}, "the scene has no light"),
         ({"integrator": "bdpt"}, "scene.integrator: got 'bdpt'; choose one of prb, path"),
+        ({"geometry": "scan.ply"}, "meshio convert mesh.ply mesh.obj"),
+        (
+            {"cameras": [{"origin": [0, 0, 4], "target": [0, 0, 0], "width": 8, "height": 8}]},
+            "scene.cameras[0].up: the default [0.0, 0.0, 1.0] is zero or along the viewing "
+            "direction (origin to target); give up = [0, 1, 0]",
+        ),
+        (
+            {
+                "cameras": [
+                    {
+                        "origin": [0, -4, 0],
+                        "target": [0, 0, 0],
+                        "up": [0, 1, 0],
+                        "fov_x_deg": 40,
+                        "width": 8,
+                        "height": 8,
+                    }
+                ]
+            },
+            "scene.cameras[0].up: [0.0, 1.0, 0.0] is zero or along the viewing direction (origin "
+            "to target); give up = [0, 0, 1]",
+        ),
+        (
+            {"cameras": [{"type": "thinlens", "origin": [0, -4, 0], "target": [0, 0, 0]}]},
+            "scene.cameras[0].type: got 'thinlens'; a thin lens is type = \"perspective\" with "
+            "aperture_radius",
+        ),
     ],
 )
 def test_scene_errors_name_the_key(tmp_path, change, message):
@@ -274,3 +301,110 @@ def test_peer_scene_is_an_obj(shared_data):
     assert isinstance(scene.geometry, ObjFile) and scene.geometry.path.name == "mesh.obj"
     check_obj_has_uvs(scene.geometry.path)
     assert Path(scene.meta["images"][0]).exists()
+
+
+# A cube of side 2 about `offset`: 8 shared vertices, 6 quads wound outward (counter-clockwise
+# seen from outside).
+CUBE_FACES = [
+    (1, 2, 4, 3),  # -z ... each listed as 1-based indices of the corners below
+    (5, 7, 8, 6),
+    (1, 5, 6, 2),
+    (3, 4, 8, 7),
+    (1, 3, 7, 5),
+    (2, 6, 8, 4),
+]
+
+
+def cube_obj(path, offset=(0.0, 0.0, 0.0), flip=(), normals=False):
+    corners = [(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
+    lines = [f"v {x + offset[0]} {y + offset[1]} {z + offset[2]}" for x, y, z in corners]
+    faces = [f[::-1] if i in flip else f for i, f in enumerate(CUBE_FACES)]
+    if normals:  # one normal per face, its corners pointing at it
+        for f in faces:
+            n = np.sign(np.sum([corners[i - 1] for i in f], axis=0)).astype(int)
+            lines.append(f"vn {n[0]} {n[1]} {n[2]}")
+        lines += [f"f {' '.join(f'{i}//{k}' for i in f)}" for k, f in enumerate(faces, 1)]
+    else:
+        lines += [f"f {' '.join(map(str, f))}" for f in faces]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_the_cube_is_wound_outward():
+    """The fixture itself: each face's normal (by its winding) points away from the centre."""
+    corners = np.array([(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+    for f in CUBE_FACES:
+        p = corners[[i - 1 for i in f]]
+        normal = np.cross(p[1] - p[0], p[2] - p[0])
+        assert normal @ p.mean(axis=0) > 0
+
+
+def test_a_mesh_without_normals_says_how_it_will_shade(tmp_path, caplog):
+    """Without `vn` the renderer interpolates normals (a box renders rounded) and a face's front
+    follows its winding (faces wound against their neighbours, or a whole mesh inside out, show
+    their black backs): each is one warning naming the file and the fix, kept with the scene."""
+    from captures.geometry import check_obj
+
+    plain = cube_obj(tmp_path / "cube.obj")
+    (warning,) = check_obj(plain).warnings
+    assert "cube.obj: has no vertex normals" in warning and "12 edges sharper" in warning
+    assert "face_normals = true" in warning
+    assert check_obj(plain, face_normals=True).warnings == ()
+    assert check_obj(cube_obj(tmp_path / "vn.obj", normals=True)).warnings == ()
+
+    # two neighbouring faces flipped: their 4 + 4 edges, the one they share counted twice
+    mixed = check_obj(cube_obj(tmp_path / "mixed.obj", flip=(0, 3))).warnings
+    assert any("6 of its 12 shared edges join faces wound in opposite" in w for w in mixed)
+    inside_out = check_obj(cube_obj(tmp_path / "in.obj", flip=range(6)), face_normals=True)
+    assert len(inside_out.warnings) == 1 and "wound inside out" in inside_out.warnings[0]
+    assert check_obj(cube_obj(tmp_path / "in_vn.obj", flip=range(6), normals=True)).warnings == ()
+
+    caplog.set_level("WARNING")
+    scene = parse_scene(scene_table(geometry="cube.obj"), tmp_path / "s.toml")
+    assert scene.geometry.warnings == (warning,) and warning in caplog.text
+    flat = parse_scene(
+        scene_table(geometry={"type": "obj", "file": "cube.obj", "face_normals": True}),
+        tmp_path / "s.toml",
+    )
+    assert flat.geometry.face_normals and flat.geometry.warnings == ()
+
+
+def test_smooth_meshes_without_normals_are_not_warned(tmp_path):
+    """Finely divided smooth surfaces written without normals (a UV sphere, the procedural cup)
+    have no sharp edges and are wound alike: no warning."""
+    from captures.geometry import check_obj
+
+    def write(path, positions, faces):
+        lines = [f"v {x} {y} {z}" for x, y, z in positions]
+        lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+        path.write_text("\n".join(lines) + "\n")
+        return path
+
+    theta, phi = np.meshgrid(np.linspace(0, np.pi, 17), np.linspace(0, 2 * np.pi, 33)[:-1])
+    grid = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1)
+    index = np.arange(grid.shape[0] * grid.shape[1]).reshape(grid.shape[:2])
+    nxt = np.roll(index, -1, axis=0)
+    a, b = index[:, :-1].ravel(), nxt[:, :-1].ravel()
+    c, d = nxt[:, 1:].ravel(), index[:, 1:].ravel()
+    faces = np.concatenate([np.stack([a, c, b], 1), np.stack([a, d, c], 1)])
+    sphere = write(tmp_path / "sphere.obj", grid.reshape(-1, 3), faces)
+    assert check_obj(sphere).warnings == ()
+    cup = cup_mesh(CupShape())
+    assert check_obj(write(tmp_path / "cup.obj", cup.positions, cup.faces)).warnings == ()
+
+
+@pytest.mark.parametrize("offset, far", [(1e2, False), (1e5, True), (4e6, True)])
+def test_an_object_far_from_the_origin_is_refused(tmp_path, offset, far):
+    """float32 positions tear a surface 1e4 radii from the origin: refused with the fix."""
+    cube_obj(tmp_path / "cube.obj", offset=(offset, -offset, 0.0))
+    camera = {"origin": [offset, -offset - 6, 0], "target": [offset, -offset, 0]}
+    table = scene_table(geometry="cube.obj")
+    table["cameras"][0].update(camera)
+    if not far:
+        parse_scene(table, tmp_path / "s.toml")
+        return
+    with pytest.raises(CaptureError, match=r"s.toml: scene.geometry: the object .* reaches"):
+        parse_scene(table, tmp_path / "s.toml")
+    sphere = scene_table(geometry={"type": "sphere", "center": [offset, 0, 0], "radius": 1.0})
+    with pytest.raises(CaptureError, match="move the scene to the origin"):
+        parse_scene(sphere, tmp_path / "s.toml")

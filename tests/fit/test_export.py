@@ -33,7 +33,7 @@ from fit.export.mapping import (
 )
 from fit.export.mitsuba import image_difference
 from fit.material import build_material, load_preset, save_preset
-from fit.render import bake_texture, render, scene_dict
+from fit.render import bake_texture, load_scene, render, scene_dict
 
 ROOT = Path(__file__).resolve().parents[2]
 CUP = ROOT / "configs" / "cup.toml"
@@ -71,8 +71,8 @@ def test_mitsuba_native_renders_as_the_native_material(tmp_path):
     assert path == tmp_path / "xml" / "material.xml"
     loaded = mi.load_file(str(path))
     scene = tiny_scene(SPHERE)
-    native = render(mi.load_dict(scene_dict(scene, preset.material, 0, 16)), 16, seed=3)
-    again = render(mi.load_dict(scene_dict(scene, loaded, 0, 16)), 16, seed=3)
+    native = render(load_scene(scene_dict(scene, preset.material, 0, 16)), 16, seed=3)
+    again = render(load_scene(scene_dict(scene, loaded, 0, 16)), 16, seed=3)
     assert native.mean() > 0.05
     np.testing.assert_array_equal(again, native)
 
@@ -104,8 +104,8 @@ def test_mitsuba_portable_uses_builtins_only_and_looks_alike(tmp_path):
     types = {e.get("type") for e in ET.parse(path).iter() if e.get("type")}
     assert types <= BUILTIN, types
     scene = tiny_scene(SPHERE)
-    native = render(mi.load_dict(scene_dict(scene, preset.material, 0, 64)), 64, seed=1)
-    portable = render(mi.load_dict(scene_dict(scene, mi.load_file(str(path)), 0, 64)), 64, seed=1)
+    native = render(load_scene(scene_dict(scene, preset.material, 0, 64)), 64, seed=1)
+    portable = render(load_scene(scene_dict(scene, mi.load_file(str(path)), 0, 64)), 64, seed=1)
     assert image_difference(native, portable) < 0.35
     assert abs(portable.mean() / native.mean() - 1) < 0.1
 
@@ -150,9 +150,9 @@ def test_mitsuba_cup_renders_alike(tmp_path):
     images = {}
     for name, portable in (("native", False), ("portable", True)):
         path = export(preset, "mitsuba", tmp_path / name, portable=portable, size=256)
-        images[name] = render(mi.load_dict(scene_dict(scene, mi.load_file(str(path)))), 16, 0)
-    truth = render(mi.load_dict(scene_dict(scene, preset.material)), 16, 0)
-    other = render(mi.load_dict(scene_dict(scene, preset.material)), 16, 1)
+        images[name] = render(load_scene(scene_dict(scene, mi.load_file(str(path)))), 16, 0)
+    truth = render(load_scene(scene_dict(scene, preset.material)), 16, 0)
+    other = render(load_scene(scene_dict(scene, preset.material)), 16, 1)
     np.testing.assert_array_equal(images["native"], truth)
     assert image_difference(truth, images["portable"]) < image_difference(truth, other)
 

@@ -7,14 +7,13 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import mitsuba as mi
 import numpy as np
 import pytest
 
 from captures.capture import Capture, View
 from fit.config import load_render_config
 from fit.material import resolve
-from fit.render import render, scene_dict
+from fit.render import load_scene, render, scene_dict
 from fit.solvers import Phase, Problem, run_schedule, shape_loss, solve
 from materials.params import BOUND_MARGIN, SCALE
 
@@ -37,7 +36,7 @@ def sphere(lights: float = 1.0, environment: float = 1.0, spp: int = 512, sky: f
         ),
         environment=tuple(environment * c for c in scene.environment),
     )
-    target = render(mi.load_dict(scene_dict(shown, cfg.material, 0, 256)), spp, seed=99)
+    target = render(load_scene(scene_dict(shown, cfg.material, 0, 256)), spp, seed=99)
     return cfg, Capture(scene, [View("v", target, np.ones((36, 48), np.float32), camera)])
 
 

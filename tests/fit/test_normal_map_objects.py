@@ -107,7 +107,7 @@ def write_folder(folder, data: MeshData) -> np.ndarray:
 def test_a_torus_folder_renders_like_its_photographs(tmp_path, tilt):
     """A torus (tilted: its ring hides part of itself, depth jumps at the occluding edge) becomes
     a height field whose renders match the photographs; the fitted-disc sphere would not."""
-    from fit.render import render
+    from fit.render import load_scene, render
     from fit.render.scene import scene_dict
 
     write_folder(tmp_path / "torus", torus(27.0, 10.0, tilt))
@@ -115,7 +115,7 @@ def test_a_torus_folder_renders_like_its_photographs(tmp_path, tilt):
     assert isinstance(capture.scene.geometry, MeshArrays)
     errors = []
     for i, view in enumerate(capture.views):
-        image = render(mi.load_dict(scene_dict(capture.scene_of(i), BSDF, 0, 64)), 64)
+        image = render(load_scene(scene_dict(capture.scene_of(i), BSDF, 0, 64)), 64)
         inside = view.weight > 0
         assert inside.sum() > 0.4 * view.mask.sum()  # the pixels the height field covers whole
         diff = (image - view.image)[inside]
@@ -128,7 +128,7 @@ def test_a_torus_folder_renders_like_its_photographs(tmp_path, tilt):
     cx, cy, radius = fit_sphere_to_mask(mask)
     sphere = Sphere((cx - W / 2, H / 2 - cy, 0.0), radius)
     ball = replace(capture, scene=replace(capture.scene, geometry=sphere))
-    image = render(mi.load_dict(scene_dict(ball.scene_of(1), BSDF, 0, 16)), 16)
+    image = render(load_scene(scene_dict(ball.scene_of(1), BSDF, 0, 16)), 16)
     inside = capture.views[1].weight > 0
     diff = (image - capture.views[1].image)[inside]
     assert np.sqrt(np.mean(diff**2)) / np.sqrt(np.mean(capture.views[1].image[inside] ** 2)) > 0.3
@@ -292,7 +292,7 @@ def test_a_normal_png_of_another_size_is_named(tmp_path):
 def test_a_downscaled_folder_builds_its_height_field_at_its_resolution(tmp_path):
     """At downscale 2 the height field has a vertex per 2 x 2 block (a quarter of them) and
     renders at that resolution still match the (area-averaged) photographs."""
-    from fit.render import render
+    from fit.render import load_scene, render
     from fit.render.scene import scene_dict
 
     write_folder(tmp_path / "torus", torus(27.0, 10.0, 0.0))
@@ -306,7 +306,7 @@ def test_a_downscaled_folder_builds_its_height_field_at_its_resolution(tmp_path)
         atol=2.0,
     )
     for i, view in enumerate(capture.views):
-        image = render(mi.load_dict(scene_dict(capture.scene_of(i), BSDF, 0, 64)), 64)
+        image = render(load_scene(scene_dict(capture.scene_of(i), BSDF, 0, 64)), 64)
         inside = view.weight > 0.999
         diff = (image - view.image)[inside]
         error = np.sqrt(np.mean(diff**2)) / np.sqrt(np.mean(view.image[inside] ** 2))

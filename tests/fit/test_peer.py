@@ -5,13 +5,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import mitsuba as mi
 import numpy as np
 import pytest
 
 from captures import load_peer_scene
 from captures.images import read_image
-from fit.render import coverage_dict, render, scene_dict
+from fit.render import coverage_dict, load_scene, render, scene_dict
 
 ROOT = Path(__file__).resolve().parents[2]
 SPP = 1024
@@ -27,7 +26,7 @@ def peer(shared_data):
     scene = load_peer_scene(shared_data / "peer-cycles" / "sphere-blue" / "scene.json")
     targets = [read_image(p)[..., :3] for p in scene.meta["images"]]
     coverage = [
-        render(mi.load_dict(coverage_dict(scene, v, 64)), 64)[..., 0]
+        render(load_scene(coverage_dict(scene, v, 64)), 64)[..., 0]
         for v in range(len(scene.cameras))
     ]
     return scene, targets, coverage
@@ -53,7 +52,7 @@ def test_glaze_matches_cycles(peer, fresnel, radiance_tol):
     scene, targets, coverage = peer
     bsdf = glaze_at_truth(scene.meta["material"], fresnel)
     for view, (target, cover) in enumerate(zip(targets, coverage, strict=True)):
-        image = render(mi.load_dict(scene_dict(scene, bsdf, view, SPP)), SPP, seed=view)
+        image = render(load_scene(scene_dict(scene, bsdf, view, SPP)), SPP, seed=view)
         obj, inside = cover > 0, cover > 0.999
         assert inside.sum() > 1000
         ratio = image[obj].sum() / target[obj].sum()
@@ -68,7 +67,7 @@ def test_wrong_lobe_width_is_caught(peer):
     scene, targets, coverage = peer
     bsdf = glaze_at_truth(scene.meta["material"], "exact")
     bsdf["roughness"] *= 2.0
-    image = render(mi.load_dict(scene_dict(scene, bsdf, 0, SPP)), SPP)
+    image = render(load_scene(scene_dict(scene, bsdf, 0, SPP)), SPP)
     inside = coverage[0] > 0.999
     rel = np.abs(image[inside] - targets[0][inside]).sum(-1) / targets[0][inside].sum(-1)
     ratio = image[coverage[0] > 0].sum() / targets[0][coverage[0] > 0].sum()
@@ -198,7 +197,7 @@ def test_a_rough_diffuse_target_needs_the_eon_lobe():
     target = build_material({**glaze, **truth}, "<truth>")
     views = []
     for i, camera in enumerate(scene.cameras[:2]):
-        image = render(mi.load_dict(scene_dict(scene, target, i, 256)), 256, seed=7 + i)
+        image = render(load_scene(scene_dict(scene, target, i, 256)), 256, seed=7 + i)
         views.append(View(f"v{i}", image, np.ones(image.shape[:2], np.float32), camera))
     capture = Capture(scene, views, {"glaze.pigment": truth["pigment"]})
     phases = [Phase(solver="adam", steps=60, spp=8, lr=0.08), Phase(solver="gn", steps=16, spp=16)]

@@ -12,7 +12,7 @@ import pytest
 from captures.capture import Capture, View
 from fit.config import load_render_config
 from fit.material import build_material, resolve
-from fit.render import Renderer
+from fit.render import Renderer, load_scene
 from fit.render.renderer import RERECORD_LIMIT
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -143,7 +143,6 @@ def test_a_recording_that_fails_runs_unfrozen():
     batch's recording (its virtual call on the cameras traces every live camera) unrebuilt, and
     the recording fails: the renderer then runs that pass unfrozen, with the same image, instead
     of failing the fit."""
-    import mitsuba as mi
 
     from fit.render.scene import scene_dict
 
@@ -152,7 +151,7 @@ def test_a_recording_that_fails_runs_unfrozen():
     x = np.asarray([0.2], np.float32)
     expected = Renderer(capture, material, free, False).render(x, 3, 4)
     stray_capture, _ = sphere_capture("thinlens")
-    stray = mi.load_dict(scene_dict(stray_capture.scene_of(0), material, 0, 2))
+    stray = load_scene(scene_dict(stray_capture.scene_of(0), material, 0, 2))
     frozen = Renderer(capture, material, free)
     primal = frozen.groups[0].primal
     assert primal.frozen is not None

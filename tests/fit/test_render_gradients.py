@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from fit.config import load_render_config
-from fit.render import MATERIAL_PREFIX, render, scene_dict
+from fit.render import MATERIAL_PREFIX, load_scene, render, scene_dict
 
 ROOT = Path(__file__).resolve().parents[2]
 CLAY = {
@@ -43,9 +43,9 @@ def test_constant_mask_stack_renders_like_blendbsdf():
         "glaze_mask": 0.3,
     }
     blend = {"type": "blendbsdf", "weight": 0.3, "a": CLAY, "b": GLAZE}
-    a = render(mi.load_dict(scene_dict(scene, stack, 0, 64)), 512, seed=1)
-    b = render(mi.load_dict(scene_dict(scene, blend, 0, 64)), 512, seed=1000)
-    c = render(mi.load_dict(scene_dict(scene, blend, 0, 64)), 512, seed=2000)
+    a = render(load_scene(scene_dict(scene, stack, 0, 64)), 512, seed=1)
+    b = render(load_scene(scene_dict(scene, blend, 0, 64)), 512, seed=1000)
+    c = render(load_scene(scene_dict(scene, blend, 0, 64)), 512, seed=2000)
     assert a.sum() / b.sum() == pytest.approx(1.0, abs=0.01)
     # the stack differs from blendbsdf no more than blendbsdf differs from itself (noise)
     assert np.abs(a - b).mean() < 1.3 * np.abs(c - b).mean()
@@ -54,7 +54,7 @@ def test_constant_mask_stack_renders_like_blendbsdf():
 def test_cup_gradients_flow_through_the_stack():
     """`dr.backward` through a prb render of the cup reaches every kind of parameter, finite."""
     cfg, scene = small_scene("cup.toml", size=32)
-    loaded = mi.load_dict(scene_dict(scene, cfg.material, 0, 8))
+    loaded = load_scene(scene_dict(scene, cfg.material, 0, 8))
     params = mi.traverse(loaded)
     keys = [
         "glaze.mask.threshold",

@@ -17,7 +17,15 @@ from captures.capture import Capture, View
 from captures.errors import InputError
 from fit.config import load_render_config
 from fit.material import resolve, to_physical, to_unconstrained
-from fit.render import GRAD_SEED_OFFSET, MATERIAL_PREFIX, Renderer, make_render, render, scene_dict
+from fit.render import (
+    GRAD_SEED_OFFSET,
+    MATERIAL_PREFIX,
+    Renderer,
+    load_scene,
+    make_render,
+    render,
+    scene_dict,
+)
 from fit.solvers import Phase, Problem, run_schedule, solve, uncertainty
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -29,7 +37,7 @@ def sphere_problem(width: int, height: int) -> Problem:
     cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
     camera = dataclasses.replace(cfg.scene.cameras[0], width=width, height=height)
     scene = dataclasses.replace(cfg.scene, cameras=(camera,))
-    target = render(mi.load_dict(scene_dict(scene, cfg.material, 0, 256)), 512, seed=99)
+    target = render(load_scene(scene_dict(scene, cfg.material, 0, 256)), 512, seed=99)
     capture = Capture(scene, [View("v", target, np.ones((height, width), np.float32), camera)])
     return Problem(capture, cfg.material, resolve(cfg.material, KEYS))
 
@@ -178,10 +186,14 @@ def test_render_does_not_recompile(problem):
     )
 
 
-def test_levenberg_marquardt_recovers_the_sphere(problem):
+def test_levenberg_marquardt_recovers_the_sphere(larger):
+    """LM with one seed ends at that seed's optimum: at 48x36 and 32 spp its pigment was off by
+    0.022-0.056 over seeds 0-3 (the variance's gradient), at 128 spp alpha by up to 22 %; at
+    96x72 and 64 spp every seed 0-3 within the tolerances (pigment 0.009-0.017, alpha +7 to
+    +15 %, ior within 0.036)."""
     start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.2, "glaze.ior": 1.3}
-    result = solve("lm", problem, to_unconstrained(problem.free, start), steps=30, spp=32, seed=1)
-    check(result.values)
+    u0 = to_unconstrained(larger.free, start)
+    check(solve("lm", larger, u0, steps=30, spp=64, seed=1).values)
 
 
 #: The default schedule's shape at this size: Adam at half resolution, then an averaged polish
@@ -257,7 +269,7 @@ def two_views(gain=None):
     scene = dataclasses.replace(cfg.scene, cameras=cameras)
     views = []
     for i, camera in enumerate(cameras):
-        target = render(mi.load_dict(scene_dict(scene, cfg.material, i, 256)), 512, seed=99 + i)
+        target = render(load_scene(scene_dict(scene, cfg.material, i, 256)), 512, seed=99 + i)
         scale = 1.0 if gain is None else (gain if i else 1 / gain)
         views.append(View(f"v{i}", target * scale, np.ones((36, 48), np.float32), camera))
     return cfg, Capture(scene, views)
@@ -566,11 +578,14 @@ def _gn(problem, u0, steps, seed=1, offer=None, resume=None, spp=16, **options):
     )
 
 
-def test_gauss_newton_converges_and_resumes(problem):
+def test_gauss_newton_converges_and_resumes(larger):
     """The stochastic Gauss-Newton phase from a start off in every parameter lands within the
-    48x36 tolerances in 24 steps of 16 spp; stopped after step 16 (within the averaged tail) and
-    resumed from its offered state (the curvature in it), it ends where the uninterrupted run
-    does (to float rounding), with the same tail of gradients."""
+    tolerances in 24 steps of 16 spp on the 96x72 sphere (seeds 0-3: alpha within 9 %, pigment
+    0.002; on the 48x36 one, whose highlight spans a few pixels, alpha ended -47 to -80 % for
+    three seeds of four); stopped after step 16 (within the averaged tail) and resumed from its
+    offered state (the curvature in it), it ends where the uninterrupted run does (to float
+    rounding), with the same tail of gradients."""
+    problem = larger
     start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.12, "glaze.ior": 1.4}
     u0 = problem.unconstrained(start)
     saved = {}
@@ -726,7 +741,7 @@ def test_gauss_newton_with_five_unknown_exposures():
     scene = dataclasses.replace(cfg.scene, cameras=cameras)
     views = []
     for i, (camera, gain) in enumerate(zip(cameras, gains, strict=True)):
-        target = render(mi.load_dict(scene_dict(scene, cfg.material, i, 256)), 256, seed=9 + i)
+        target = render(load_scene(scene_dict(scene, cfg.material, i, 256)), 256, seed=9 + i)
         views.append(View(f"v{i}", gain * target, np.ones((24, 32), np.float32), camera))
     free = resolve(cfg.material, ["glaze.pigment", "glaze.ior"])
     problem = Problem(Capture(scene, views), cfg.material, free, gains="exposure")
@@ -897,10 +912,12 @@ def _against(problem: Problem, image: np.ndarray) -> Problem:
 
 def test_noise_ratio_is_the_renders_share_of_the_residual(problem):
     """Against a target that is itself a render at the same spp, the rest of the residual is one
-    render's noise: a ratio about 1; at 16x the samples at least 16 (more: the scene's sampler
-    is stratified, its variance falls faster than 1 / spp; measured 127); against a target
-    three times brighter, the difference dominates (30 % brighter is still 7x less than 4-spp
-    noise on this small sphere's highlights)."""
+    render's noise: a ratio about 1; at 16x the samples about 16, well above `AUTO_RATIO` (one
+    pair of 4-spp renders is a heavy-tailed estimate of their noise: over six 64-spp targets and
+    three noise seeds each it read 2.7 to infinity, the medians 8-25); against a target three
+    times brighter, the difference dominates (30 % brighter is still 7x less than 4-spp noise on
+    this small sphere's highlights)."""
+    from fit.solvers.gn import AUTO_RATIO
     from fit.solvers.problem import noise_ratio
 
     u = problem.unconstrained(TRUTH)
@@ -912,7 +929,8 @@ def test_noise_ratio_is_the_renders_share_of_the_residual(problem):
 
     same = [noise_ratio(_against(problem, target(4, 4242 + k)), u, 4, k) for k in range(4)]
     assert 0.6 < np.median(same) < 1.6, same
-    assert noise_ratio(_against(problem, target(64)), u, 4, 0) > 10
+    clean = [noise_ratio(_against(problem, target(64)), u, 4, k) for k in range(4)]
+    assert np.median(clean) > 2 * AUTO_RATIO, clean
     assert noise_ratio(_against(problem, 3.0 * target(64)), u, 4, 0) < 0.5
 
 

@@ -45,11 +45,10 @@ def test_synth_round_trip(tmp_path):
     }
     (view,) = capture.views
     assert view.gain != 1.0  # a random exposure was applied, recorded, and undone on load
-    import mitsuba as mi
 
-    from fit.render import render, scene_dict
+    from fit.render import load_scene, render, scene_dict
 
-    again = render(mi.load_dict(scene_dict(scene, cfg.material, 0, 16)), 16, seed=3)
+    again = render(load_scene(scene_dict(scene, cfg.material, 0, 16)), 16, seed=3)
     np.testing.assert_allclose(view.image, again, rtol=1e-4, atol=1e-6)
     # deterministic: same config and seed, same pixels up to float rounding (the film sums each
     # pixel's samples with parallel atomics, whose order varies)
@@ -102,17 +101,14 @@ def test_peer_silhouette_matches(shared_data):
 def test_diligent_silhouette_and_shading_match(shared_data):
     """The fitted sphere covers the mask, and a Lambertian render under each view's light
     correlates with the photo (a mirrored light frame would not)."""
-    import mitsuba as mi
 
-    from fit.render import render, scene_dict
+    from fit.render import load_scene, render, scene_dict
 
     capture = open_capture(shared_data / "diligent-ball", downscale=4)
     coverage = silhouettes(capture, spp=16)
     assert iou(coverage[0], capture.views[0].mask, 0.5) > 0.98
     for i in (0, 7, 12):
-        image = render(
-            mi.load_dict(scene_dict(capture.scene_of(i), {"type": "diffuse"}, 0, 16)), 16
-        )
+        image = render(load_scene(scene_dict(capture.scene_of(i), {"type": "diffuse"}, 0, 16)), 16)
         valid = capture.views[i].weight > 0
         r = np.corrcoef(image.mean(-1)[valid], capture.views[i].image.mean(-1)[valid])[0, 1]
         assert r > 0.95, (i, r)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-import mitsuba as mi
 import numpy as np
 import pytest
 
@@ -15,7 +14,7 @@ from captures.images import write_image
 from captures.scene import Camera
 from fit.config import load_render_config
 from fit.material import build_material, resolve
-from fit.render import Renderer, render, scene_dict
+from fit.render import Renderer, load_scene, render, scene_dict
 from fit.solvers import Phase, Problem, run_schedule
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -58,7 +57,7 @@ def capture(tmp_path: Path) -> Capture:
     scene = dataclasses.replace(cfg.scene, cameras=cameras, environment=(0.5, 0.5, 0.5))
     views = []
     for i, camera in enumerate(cameras):
-        image = render(mi.load_dict(scene_dict(scene, truth, i, 256)), 256, seed=7 + i)
+        image = render(load_scene(scene_dict(scene, truth, i, 256)), 256, seed=7 + i)
         views.append(View(f"v{i}", image, np.ones((36, 48), np.float32), camera))
     return Capture(scene, views)
 
