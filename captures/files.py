@@ -132,3 +132,20 @@ def replace_folder(path: str | Path, new: str | Path) -> None:
         raise
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
+
+
+def foreign_entries(folder: str | Path, main: str | Path) -> list[str]:
+    """The names in `folder` that a tool's output there did not write: anything but its main
+    file `main` (a manifest, an exported material) and the files that file names. `--force`
+    replaces a folder whole, so an output folder holding anything else (a user's scene beside an
+    exported material, a note in a capture) is refused rather than deleted."""
+    folder, main = Path(folder), Path(main)
+    try:
+        text = main.read_text(errors="replace")
+    except OSError:
+        text = ""
+    return sorted(
+        p.name
+        for p in folder.iterdir()
+        if p.name != main.name and (not p.is_file() or p.name not in text)
+    )

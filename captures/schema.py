@@ -75,7 +75,7 @@ log = logging.getLogger(__name__)
 def load_toml(path: Path, what: str = "file") -> dict:
     """A TOML document, or a `CaptureError` naming the file and what is wrong with it."""
     try:
-        return tomllib.loads(Path(path).read_text(encoding="utf-8"))
+        return tomllib.loads(Path(path).read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
         raise CaptureError(f"{path}: no such {what}") from None
     except IsADirectoryError:

@@ -22,6 +22,7 @@ from rich.text import Text
 
 from captures.errors import InputError
 
+from .limits import MAX_SEED, MAX_SPP
 from .variant import BackendError, VariantError, select_variant
 
 # rich_markup_mode=None: help texts are plain (a "[truth]" in them is shown, not read as markup)
@@ -46,10 +47,11 @@ VariantOption = Annotated[
 ]
 
 
-#: The largest seed (the renders' seeds are 32-bit).
-MAX_SEED = 2**32 - 1
 #: The scenes `bench` reads (`fit.commands.bench`): never one of its outputs.
 BENCH_SCENES = (Path("configs/glazed-sphere.toml"), Path("configs/cup.toml"))
+#: The most samples per pixel of a `bench` timed render: one render (no passes) of the 480x360
+#: scene, its samples under Mitsuba's 2^32 a render.
+BENCH_MAX_SPP = 2**14
 #: Image types `render --out` writes.
 IMAGE_SUFFIXES = (".png", ".exr", ".tif", ".tiff", ".jpg", ".jpeg")
 
@@ -164,7 +166,8 @@ def render(
         Path, typer.Option(help="Output PNG (sRGB); a linear EXR is written beside it.")
     ] = Path("out/render.png"),
     spp: Annotated[
-        int | None, typer.Option(min=1, help="Samples per pixel (overrides the config).")
+        int | None,
+        typer.Option(min=1, max=MAX_SPP, help="Samples per pixel (overrides the config)."),
     ] = None,
     seed: Annotated[int, typer.Option(min=0, max=MAX_SEED, help="Random seed.")] = 0,
     force: Annotated[bool, typer.Option("--force", help="Replace existing output images.")] = False,
@@ -226,7 +229,10 @@ def _inputs(config: Path, scene_file: Path | None, scene, material) -> list[Path
 
 @app.command()
 def bench(
-    spp: Annotated[int, typer.Option(min=1, help="Samples per pixel of each timed render.")] = 64,
+    spp: Annotated[
+        int,
+        typer.Option(min=1, max=BENCH_MAX_SPP, help="Samples per pixel of each timed render."),
+    ] = 64,
     repeats: Annotated[
         int, typer.Option(min=1, help="Timed renders per case (median reported).")
     ] = 7,
@@ -411,7 +417,8 @@ def synth(
         str, typer.Option("--format", help="exr (linear), png (16-bit sRGB), jpg (8-bit sRGB).")
     ] = "exr",
     spp: Annotated[
-        int | None, typer.Option(min=1, help="Samples per pixel (default: the config's).")
+        int | None,
+        typer.Option(min=1, max=MAX_SPP, help="Samples per pixel (default: the config's)."),
     ] = None,
     seed: Annotated[
         int, typer.Option(min=0, max=MAX_SEED, help="Seed of the renders and the degradations.")
@@ -446,7 +453,7 @@ def synth(
 ) -> None:
     """Render a synthetic capture (images, manifest, [truth]) from a config (or a preset with
     --scene)."""
-    from captures.files import check_output
+    from captures.files import check_output, foreign_entries
 
     try:
         the_scene, material, config_spp = _scene_and_material(config, scene)
@@ -464,6 +471,15 @@ def synth(
                 f"--out {out}: holds photographs (its capture.toml has no [truth]); --force "
                 "replaces only a capture made by synth: choose another path"
             )
+        if out.is_dir() and (out / "capture.toml").is_file():
+            foreign = foreign_entries(out, out / "capture.toml")
+            if foreign:
+                shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+                raise InputError(
+                    f"--out {out}: also holds {shown}, which synth did not write (its "
+                    "capture.toml names no such file); --force replaces the whole folder: move "
+                    "them out or choose another path"
+                )
     except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)
@@ -495,7 +511,7 @@ def _synthetic(folder: Path) -> bool:
     import tomllib
 
     try:
-        return "truth" in tomllib.loads((folder / "capture.toml").read_text(encoding="utf-8"))
+        return "truth" in tomllib.loads((folder / "capture.toml").read_text(encoding="utf-8-sig"))
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
         return False
 

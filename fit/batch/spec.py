@@ -11,9 +11,11 @@ from typing import Annotated
 
 from pydantic import Field
 
+from captures.files import check_output
 from captures.model import ExistingPath, PositiveInt, StrictModel, expect_kind, parse_model
 
 from ..errors import ConfigError
+from ..limits import MAX_SEED
 from ..material import read_toml
 from .cluster import DEFAULT_KERNEL_CACHE
 
@@ -23,9 +25,7 @@ class BatchSpec(StrictModel):
     """Fit configs (TOML), relative to the spec; each fit starts from its config's material."""
     captures: list[ExistingPath] = Field(default_factory=list)
     """Captures that replace each config's own (empty: every config fits its own capture)."""
-    seeds: list[Annotated[int, Field(ge=0, le=2**32 - 1, strict=True)]] = Field(
-        default_factory=list
-    )
+    seeds: list[Annotated[int, Field(ge=0, le=MAX_SEED, strict=True)]] = Field(default_factory=list)
     """Seeds that replace each config's `fit.seed` (empty: the config's seed)."""
     out: Path = Path("out/batch")
     """The batch folder, relative to the spec: one run folder per fit and the index."""
@@ -97,6 +97,8 @@ def load_batch(path: str | Path) -> Batch:
     out = (path.parent / spec.out).resolve()
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{path}: out = {str(spec.out)!r} is a file; give a folder")
+    # where the index (written first) cannot be made: under a file, or in a read-only folder
+    check_output(out / INDEX_FILES[0], f"{path}: out = {str(spec.out)!r}:", force=True)
     jobs, names = [], {}
     for config in spec.configs:
         for capture in spec.captures or [None]:

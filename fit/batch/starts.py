@@ -60,10 +60,10 @@ def common_loss(problem: Problem, u, spp: int, seed: int) -> float:
     """The loss at `u` at full resolution and `spp`, with the caller's seed (shared by starts)."""
     import jax.numpy as jnp
 
-    from ..solvers.problem import residuals
+    from ..solvers.problem import jax_seed, residuals
 
     residual = residuals(problem, problem.render_fn("reverse", spp, 1), 1)
-    r = residual(jnp.asarray(u, jnp.float32), jnp.int32(seed))
+    r = residual(jnp.asarray(u, jnp.float32), jax_seed(seed))
     return float(0.5 * jnp.dot(r, r))
 
 

@@ -10,6 +10,8 @@ out/<config name>/
   checkpoint.npz        while running (removed at the end): `--resume` continues from it
 ```
 Every file is written atomically; an existing run folder is never overwritten without `force`.
+Stopped (Ctrl-C, SIGTERM), a fit leaves its checkpoint, a summary and report marked interrupted,
+and no preset; stopped while the folder is written, it finishes writing first.
 With `fit.starts` > 1 (`--starts`) the schedule runs from several starts on Ray workers and the
 best one's folder is written (`fit/batch/starts.py`); the summary's `starts` lists every start.
 """
@@ -288,11 +290,15 @@ def prepare(cfg: FitConfig, holdout: int | None = None) -> Prepared:
                 "Mitsuba's 2^32 samples a render; lower the phase's spp"
             )
     pixels = sum(v.image.shape[0] * v.image.shape[1] for v in fitted.views)
-    if pixels * cfg.uncertainty_spp >= 2**32:
-        raise InputError(
-            f"{cfg.path}: fit.uncertainty_spp = {cfg.uncertainty_spp} over {pixels} pixels is "
-            "more than Mitsuba's 2^32 samples a render; lower it"
-        )
+    full = {"uncertainty_spp": cfg.uncertainty_spp}  # renders at full resolution
+    if cfg.starts > 1:
+        full["starts_spp"] = cfg.starts_spp
+    for name, spp in full.items():
+        if pixels * spp >= 2**32:
+            raise InputError(
+                f"{cfg.path}: fit.{name} = {spp} over {pixels} pixels is more than Mitsuba's "
+                "2^32 samples a render; lower it"
+            )
     return Prepared(capture, held, free, problem, start_values(free))
 
 
@@ -347,31 +353,46 @@ def run_fit(
         partial = Result(problem.values(u), u, history[-1] if history else math.nan, 0, history)
         partial.phase_ends = list(state.get("ends", [])) + ([len(history)] if history else [])
         wall = time.perf_counter() - began + checkpoint.elapsed_before
-        _write(cfg, out, capture, held, problem, start, partial, wall, interrupted=True)
+        with _finish_first():
+            _write(cfg, out, capture, held, problem, start, partial, wall, interrupted=True)
         raise Interrupted(out) from None
     wall = time.perf_counter() - began + checkpoint.elapsed_before  # earlier sessions too
-    summary = _write(cfg, out, capture, held, problem, start, result, wall)
-    checkpoint.remove()
+    with _finish_first():
+        summary = _write(cfg, out, capture, held, problem, start, result, wall)
+        checkpoint.remove()
     return summary
 
 
-@contextlib.contextmanager
+def _finish_first():
+    """Ctrl-C (or SIGTERM) while the run folder is written waits until it is whole (a second one
+    stops at once): stopped between two files, a finished fit had left its new preset beside
+    the summary and report of the run it replaced."""
+    return _on_first_stop(lambda: None)
+
+
 def _stop_on_ctrl_c(checkpoint: Checkpoint):
     """Ctrl-C (or SIGTERM) asks the schedule to stop at its next step (never inside a render,
     where JAX would wrap the interrupt); a second one stops at once."""
+    return _on_first_stop(lambda: setattr(checkpoint, "stop", True))
+
+
+@contextlib.contextmanager
+def _on_first_stop(note: Callable[[], None]):
+    """Inside, the first Ctrl-C or SIGTERM only calls `note()`; a second one interrupts
+    (KeyboardInterrupt). Only the main thread receives signals: elsewhere nothing changes."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     signals = (signal.SIGINT, signal.SIGTERM)
     previous = {s: signal.getsignal(s) for s in signals}
 
-    def request(signum, frame):
-        checkpoint.stop = True
+    def first(signum, frame):
+        note()
         for s in signals:
             signal.signal(s, signal.default_int_handler)
 
     for s in signals:
-        signal.signal(s, request)
+        signal.signal(s, first)
     try:
         yield
     finally:
@@ -398,15 +419,18 @@ def _write(
     if starts is not None:
         summary["starts"] = starts
     fitted_material = cfg.material.with_values(result.values)
-    for key, texels in textures.items():
-        write_image(out / f"{key}.exr", texels)
-    std = {k: v for k, v in (result.std or {}).items() if k in cfg.material.params}
-    save_preset(
-        fitted_material,
-        out / "preset.toml",
-        provenance(cfg.capture, cfg.path, result.loss, std or None),
-        textures,
-    )
+    if interrupted:  # no preset of a fit that did not end (nor an earlier run's beside it)
+        (out / "preset.toml").unlink(missing_ok=True)
+    else:
+        for key, texels in textures.items():
+            write_image(out / f"{key}.exr", texels)
+        std = {k: v for k, v in (result.std or {}).items() if k in cfg.material.params}
+        save_preset(
+            fitted_material,
+            out / "preset.toml",
+            provenance(cfg.capture, cfg.path, result.loss, std or None),
+            textures,
+        )
     masks = _masks(fitted_material) | {k: t[..., 0] for k, t in textures.items()}
     title = f"{cfg.path.name}{' (interrupted)' if interrupted else ''}"
     write_report(out, summary, panels, masks, title)

@@ -75,8 +75,9 @@ def synthesize(
         views = []
         for i, camera in enumerate(scene.cameras):
             loaded = load_scene(scene_dict(scene, material.bsdf, i, spp))
+            view_seed = (seed + 1000 * i) % 2**32  # the sampler's seeds are 32-bit
             image = render(
-                loaded, spp, seed + 1000 * i, (lambda n, i=i: progress(i, n)) if progress else None
+                loaded, spp, view_seed, (lambda n, i=i: progress(i, n)) if progress else None
             )
             ev = degradation.base_ev + float(rng.uniform(-1, 1) * degradation.exposure_ev)
             image = image * 2.0**ev

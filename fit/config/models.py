@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, field_validator, model_validator
 
@@ -19,13 +19,14 @@ from captures.model import (
 )
 
 from ..errors import ConfigError
+from ..limits import MAX_SEED, MAX_SPP
 from ..material import Material, load_material, read_toml
 from ..solvers.schedule import DEFAULT_SCHEDULE, Phase, default_schedule
 
 
 class RenderSettings(StrictModel):
-    spp: PositiveInt = 64
-    """Samples per pixel of each view."""
+    spp: Annotated[PositiveInt, Field(le=MAX_SPP)] = 64
+    """Samples per pixel of each view (at most 2^20: `fit.limits.MAX_SPP`)."""
 
 
 class _RenderFile(StrictModel):
@@ -40,8 +41,9 @@ class _RenderFile(StrictModel):
 class FitSettings(StrictModel):
     free: list[str] = Field(min_length=1)
     """The parameter keys the fit moves, e.g. ["glaze.roughness", "lime.mask.threshold"]."""
-    seed: NonNegativeInt = 0
-    """Seed of the renders (phase k uses seed + k)."""
+    seed: Annotated[NonNegativeInt, Field(le=MAX_SEED)] = 0
+    """Seed of the renders (phase k uses seed + k), at most 2^32 - 1 (the renders' seeds are
+    32-bit; the seeds derived from it wrap)."""
     gains: bool | Literal["exposure"] = False
     """A free gain per view, their geometric mean 1 (the declared exposures right on average):
     true, an RGB gain (unknown exposure and white balance); "exposure", one grey gain (one

@@ -9,7 +9,7 @@ import contextlib
 from collections.abc import Iterator
 from pathlib import Path
 
-from captures.files import atomic_path
+from captures.files import atomic_path, foreign_entries
 from captures.files import check_output as check_path
 
 from ..errors import ConfigError
@@ -36,13 +36,22 @@ def check_output(out: Path, force: bool, inputs=()) -> None:
         return
     if not force:
         raise ConfigError(f"{out}: exists and is not empty; pass --force to replace it")
-    if not any((out / name).is_file() for name in MAIN_FILES):
+    main = next((out / name for name in MAIN_FILES if (out / name).is_file()), None)
+    if main is None:
         names = sorted(p.name for p in out.iterdir())
         shown = ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
         raise ConfigError(
             f"--out {out}: is not a layerfit export (it holds {shown}, no "
             f"{' / '.join(MAIN_FILES)}); --force replaces only an earlier export: choose "
             "another path"
+        )
+    foreign = foreign_entries(out, main)
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        raise ConfigError(
+            f"--out {out}: also holds {shown}, which the earlier export did not write (its "
+            f"{main.name} names no such file); --force replaces the whole folder: move them out "
+            "or choose another path"
         )
 
 

@@ -183,7 +183,7 @@ def _upgrade(doc: dict, path: Path) -> dict:
 def read_toml(path: Path) -> dict:
     """A TOML document, or a one-line `ConfigError` naming the file."""
     try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
+        return tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such file; check the path") from None
     except IsADirectoryError:

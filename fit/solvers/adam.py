@@ -12,7 +12,7 @@ import optimistix as optx
 from pydantic import Field, PositiveFloat
 
 from .base import AbstractSolver, Options, Outcome, PhaseReport, Result, tail_variance
-from .problem import residuals
+from .problem import jax_seed, residuals
 
 
 class AdamOptions(Options):
@@ -84,7 +84,7 @@ class Adam(AbstractSolver):
         solver = optx.OptaxMinimiser(optimiser, rtol=0.0, atol=0.0)
         u = jnp.asarray(u0, jnp.float32)
         f_struct = jax.ShapeDtypeStruct((), jnp.float32)
-        state = solver.init(loss, u, jnp.int32(seed), {}, f_struct, None, frozenset())
+        state = solver.init(loss, u, jax_seed(seed), {}, f_struct, None, frozenset())
         step = jax.jit(lambda u, s, st: solver.step(loss, u, s, {}, st, frozenset()))
         history, tail, rejected, first, gain_sums = [], [], 0, 0, None
         if resume is not None:  # the state offered at step `first`
@@ -99,7 +99,7 @@ class Adam(AbstractSolver):
             gain_sums = resume.get("gain_sums")
         first_averaged = steps - round(options.average * steps)
         for i in range(first, steps):
-            new_u, new_state, sums = step(u, jnp.int32(seed * 100003 + i + 1), state)
+            new_u, new_state, sums = step(u, jax_seed(seed * 100003 + i + 1), state)
             if profile and np.all(np.isfinite(sums := np.asarray(sums, np.float64))):
                 # the gains from this step's least-squares sums (num, den), so they never lag
                 # the material (averaging them over earlier steps, which lags, left the cup's

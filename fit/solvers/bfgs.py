@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import optimistix as optx
 
 from .base import AbstractSolver, Options, Result, optimistix_result
-from .problem import residuals
+from .problem import jax_seed, residuals
 
 
 class BFGSOptions(Options):
@@ -36,12 +36,12 @@ class BFGS(AbstractSolver):
             loss,
             optx.BFGS(rtol=options.rtol, atol=options.atol),
             jnp.asarray(u0, jnp.float32),
-            args=jnp.int32(seed),
+            args=jax_seed(seed),
             max_steps=steps,
             throw=False,
         )
 
         def loss_at(u):
-            return loss(jnp.asarray(u), jnp.int32(seed))
+            return loss(jnp.asarray(u), jax_seed(seed))
 
         return optimistix_result(self.name, problem, solution, u0, loss_at, progress)

@@ -15,7 +15,7 @@ from captures.errors import InputError
 from ..material import to_physical
 from .adam import averaged_result
 from .base import AbstractSolver, Options, Result
-from .problem import noise_ratio, residuals
+from .problem import jax_seed, noise_ratio, residuals
 from .uncertainty import CROSS_SEED_OFFSET, MAX_UNCERTAINTY_PARAMS, linear_model
 
 
@@ -236,14 +236,14 @@ class GaussNewton(AbstractSolver):
             if options.gradient == "control":
                 if mean is None:
                     mean = np.zeros(problem.target(downscale)[0].size, np.float32)
-                grad_mean, r = projected_grad(jnp.asarray(u), jnp.int32(step_seed), mean)
+                grad_mean, r = projected_grad(jnp.asarray(u), jax_seed(step_seed), mean)
                 r = np.asarray(r, np.float64)
                 grad = 0.5 * (jac1 + jac2).T @ (r - mean) + np.asarray(grad_mean, np.float64)
                 value = 0.5 * float(r @ r)
                 if np.all(np.isfinite(r)):
                     mean = (mean + (r - mean) / min(i + 1, CONTROL_WINDOW)).astype(np.float32)
             else:
-                value, grad = value_and_grad(jnp.asarray(u), jnp.int32(step_seed))
+                value, grad = value_and_grad(jnp.asarray(u), jax_seed(step_seed))
                 value, grad = float(value), np.asarray(grad, np.float64)
             delta = -options.eta * (inverse @ grad)
             delta *= min(1.0, options.max_step / max(float(np.max(np.abs(delta))), 1e-30))

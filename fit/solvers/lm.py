@@ -8,7 +8,7 @@ import optimistix as optx
 from pydantic import PositiveInt
 
 from .base import AbstractSolver, Options, Result, optimistix_result
-from .problem import residuals
+from .problem import jax_seed, residuals
 
 
 class LMOptions(Options):
@@ -39,13 +39,13 @@ class LevenbergMarquardt(AbstractSolver):
             residual,
             optx.LevenbergMarquardt(rtol=options.rtol, atol=options.atol),
             jnp.asarray(u0, jnp.float32),
-            args=jnp.int32(seed),
+            args=jax_seed(seed),
             max_steps=steps,
             throw=False,
         )
 
         def loss_at(u):
-            r = np.asarray(residual(jnp.asarray(u), jnp.int32(seed)))
+            r = np.asarray(residual(jnp.asarray(u), jax_seed(seed)))
             return 0.5 * r @ r
 
         return optimistix_result(self.name, problem, solution, u0, loss_at, progress)

@@ -210,6 +210,14 @@ GAIN_SEED_OFFSET = 0xB10C5
 NOISE_SEED_OFFSET = 0x0A7105
 
 
+def jax_seed(seed: int) -> jax.Array:
+    """A render seed as the int32 scalar the bridge takes: `seed` modulo 2^32, signed. The
+    renderer takes its seeds modulo 2^32 (`Renderer._seed`), so it renders the same samples as
+    `seed` itself; and the seeds derived from a fit's (a step's `seed * 100003 + i + 1`) never
+    overflow int32 (they did from `fit.seed = 21475` on: an internal error)."""
+    return jnp.int32((int(seed) + 2**31) % 2**32 - 2**31)
+
+
 def residuals(
     problem: Problem,
     render,

@@ -43,13 +43,34 @@ def cross_product(a: np.ndarray, b: np.ndarray, weight: np.ndarray | None = None
 def inverse_determined(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The inverse of a symmetric matrix on the span of its clearly positive eigenvalues (above
     1e-9 of the largest), and which coordinates load on a direction that is not by more than
-    `UNDETERMINED_LOADING` (undetermined)."""
-    values, vectors = np.linalg.eigh(h)
-    floor = 1e-9 * max(float(np.max(np.abs(values))), 1e-300)
+    `UNDETERMINED_LOADING` (undetermined). A coordinate whose row is not finite is undetermined
+    (its row and column of the inverse zero), and all are where the eigendecomposition fails:
+    an uncertainty never loses the fit it reports on."""
+    h = np.asarray(h, np.float64)
+    finite = np.all(np.isfinite(h), axis=1)
+    inverse, undetermined = np.zeros_like(h), ~finite
+    block = np.ix_(finite, finite)
+    try:
+        values, vectors = np.linalg.eigh(h[block])
+    except np.linalg.LinAlgError:
+        return inverse, np.ones(len(h), bool)
+    floor = 1e-9 * max(float(np.max(np.abs(values), initial=0.0)), 1e-300)
     good = values > floor
-    inverse = (vectors[:, good] / values[good]) @ vectors[:, good].T
-    undetermined = np.abs(vectors[:, ~good]).max(axis=1, initial=0.0) > UNDETERMINED_LOADING
+    inverse[block] = (vectors[:, good] / values[good]) @ vectors[:, good].T
+    undetermined[finite] = np.abs(vectors[:, ~good]).max(axis=1, initial=0.0) > UNDETERMINED_LOADING
     return inverse, undetermined
+
+
+def finite_rows(r: np.ndarray, jac: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`r` and `jac` with each residual whose value or derivative is not finite zeroed (no
+    observation): a render at a diverged fit's extreme values was NaN throughout (Adam at
+    lr 100), and a parameter left without observations is reported undetermined."""
+    bad = ~(np.isfinite(r) & np.all(np.isfinite(jac), axis=1))
+    if not bad.any():
+        return r, jac
+    r, jac = r.copy(), jac.copy()
+    r[bad], jac[bad] = 0.0, 0.0
+    return r, jac
 
 
 def _meat(jac1, jac2, r1, r2, channels: int = 3) -> np.ndarray:
@@ -174,8 +195,8 @@ def uncertainty(
     n = problem.n_material
     u = jnp.asarray(u, jnp.float32)
     half = max(spp // 2, 1)
-    r1, jac1 = linearised(problem, u, half, seed, downscale)
-    r2, jac2 = linearised(problem, u, half, seed + CROSS_SEED_OFFSET, downscale)
+    r1, jac1 = finite_rows(*linearised(problem, u, half, seed, downscale))
+    r2, jac2 = finite_rows(*linearised(problem, u, half, seed + CROSS_SEED_OFFSET, downscale))
     bread, undetermined = inverse_determined(cross_product(jac1, jac2))
     for k in range(1, UNDETERMINED_RETRIES + 1):
         if not undetermined.any():
@@ -183,8 +204,8 @@ def uncertainty(
         # more samples where the noise hid a direction: each series the mean of its renders
         # (still independent of the other, so their cross product stays unbiased)
         more = seed + k * RETRY_SEED_OFFSET
-        r3, jac3 = linearised(problem, u, half, more, downscale)
-        r4, jac4 = linearised(problem, u, half, more + CROSS_SEED_OFFSET, downscale)
+        r3, jac3 = finite_rows(*linearised(problem, u, half, more, downscale))
+        r4, jac4 = finite_rows(*linearised(problem, u, half, more + CROSS_SEED_OFFSET, downscale))
         r1, jac1 = r1 + (r3 - r1) / (k + 1), jac1 + (jac3 - jac1) / (k + 1)
         r2, jac2 = r2 + (r4 - r2) / (k + 1), jac2 + (jac4 - jac2) / (k + 1)
         bread, undetermined = inverse_determined(cross_product(jac1, jac2))

@@ -408,3 +408,28 @@ def test_an_object_far_from_the_origin_is_refused(tmp_path, offset, far):
     sphere = scene_table(geometry={"type": "sphere", "center": [offset, 0, 0], "radius": 1.0})
     with pytest.raises(CaptureError, match="move the scene to the origin"):
         parse_scene(sphere, tmp_path / "s.toml")
+
+
+@pytest.mark.parametrize("channels", [2, 5])
+def test_an_image_of_other_channels_is_refused_by_name(tmp_path, channels):
+    """Mitsuba's bitmap reads grey, RGB and RGBA only: a 2-channel environment map had ended in
+    an internal error inside the renderer; now it is refused with the fix."""
+    import OpenImageIO as oiio
+
+    path = tmp_path / "sky.exr"
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), oiio.ImageSpec(8, 4, channels, "float"))
+    out.write_image(np.ones((4, 8, channels), np.float32))
+    out.close()
+    table = scene_table(environment={"type": "envmap", "file": "sky.exr"})
+    with pytest.raises(CaptureError, match=rf"sky.exr' has {channels} channels .* RGBA \(4\)"):
+        parse_scene(table, tmp_path / "s.toml")
+
+
+def test_a_toml_saved_with_a_byte_order_mark_reads(tmp_path):
+    """Windows editors save UTF-8 with an invisible byte-order mark, which TOML rejects at line 1,
+    column 1: it is read as the file's text."""
+    from captures.schema import load_toml
+
+    (tmp_path / "s.toml").write_bytes(b"\xef\xbb\xbf" + b'[scene]\ngeometry = "sphere"\n')
+    assert load_toml(tmp_path / "s.toml") == {"scene": {"geometry": "sphere"}}

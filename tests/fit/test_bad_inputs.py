@@ -277,6 +277,11 @@ CASES: list[Case] = [
         ("render.toml", "roughness"),
     ),
     ("render-spp-zero", render_cfg(RD, "[render]\nspp = 0"), ("render.toml", "render.spp")),
+    (
+        "render-spp-huge",  # was an internal error from Mitsuba's sample_count mid-render
+        render_cfg(RD, "[render]\nspp = 99999999999999999999"),
+        ("render.toml", "render.spp", "1048576"),
+    ),
     ("camera-no-fov", render_cfg("fov_x_deg = 36.0", ""), ("render.toml", "fov_x_deg")),
     (
         "camera-target-origin",
@@ -448,6 +453,11 @@ CASES: list[Case] = [
     ("render-seed-neg", render_args("--seed", "-3", "--out", out("o.png")), ("--seed",)),
     ("render-seed-huge", render_args("--seed", str(2**40), "--out", out("o.png")), ("--seed",)),
     (
+        "render-spp-opt-huge",
+        render_args("--spp", str(2**32 + 1), "--out", out("o.png")),
+        ("--spp",),
+    ),
+    (
         "render-out-exists",
         render_args("--out", out("o.png"), setup=write("o.png", "precious")),
         ("--out", "o.png", "--force"),
@@ -499,6 +509,11 @@ CASES: list[Case] = [
     ),
     ("synth-out-holds-config", synth_args("--out", lambda d: d, "--force"), ("--out", "input")),
     (
+        "synth-force-keeps-a-users-file",  # a note beside a synthetic capture's own files
+        synth_args("--out", out("cap"), "--force", setup=write("cap/notes.txt", "x")),
+        ("--out", "cap", "notes.txt", "synth did not write"),
+    ),
+    (
         "synth-force-photographs",  # a capture without [truth] holds a user's photographs
         synth_args("--out", out("photos"), "--force", setup=photographs),
         ("--out", "photos", "[truth]", "choose another path"),
@@ -534,6 +549,7 @@ CASES: list[Case] = [
     ),
     ("synth-format", synth_args("--out", out("c"), "--format", "bmp"), ("--format", "exr")),
     ("synth-spp-0", synth_args("--out", out("c"), "--spp", "0"), ("--spp",)),
+    ("synth-spp-huge", synth_args("--out", out("c"), "--spp", str(2**20 + 1)), ("--spp",)),
     ("synth-seed-neg", synth_args("--out", out("c"), "--seed", "-1"), ("--seed",)),
     ("synth-no-out", synth_args(), ("--out",)),
     # --- inspect options and outputs
@@ -544,6 +560,7 @@ CASES: list[Case] = [
     ),
     ("inspect-downscale-neg", inspect_args(out("cap"), "--downscale", "-2"), ("--downscale",)),
     ("bench-only", lambda d: ["bench", "--only", "speed"], ("--only", "profile or versus")),
+    ("bench-spp-huge", lambda d: ["bench", "--spp", "100000"], ("--spp",)),
     ("bench-size", lambda d: ["bench", "--only", "recovery", "--size", "3x3"], ("--size",)),
     ("bench-size-text", lambda d: ["bench", "--only", "grid", "--size", "big"], ("--size",)),
     ("bench-shapes", lambda d: ["bench", "--only", "recovery", "--shapes", "cube"], ("--shapes",)),
@@ -955,6 +972,30 @@ CASES: list[Case] = [
     ),
     ("fit-spp-huge", fit_cfg("spp = 1\n", "spp = 100000000\n"), ("fit.toml", "phases[0]", "2^32")),
     (
+        "fit-starts-spp-huge",  # the starts' common loss: one render at full resolution
+        fit_cfg("[fit]\n", "[fit]\nstarts = 2\nstarts_spp = 100000000\n"),
+        ("fit.toml", "fit.starts_spp", "2^32"),
+    ),
+    (
+        "fit-seed-huge",  # was an OverflowError (int32) at the first step
+        fit_cfg("[fit]\n", "[fit]\nseed = 4294967296\n"),
+        ("fit.toml", "fit.seed", "4294967295"),
+    ),
+    (
+        "fit-seed-huger",  # was an OverflowError (C long)
+        fit_cfg("[fit]\n", "[fit]\nseed = 99999999999999999999\n"),
+        ("fit.toml", "fit.seed", "4294967295"),
+    ),
+    (
+        "batch-out-under-file",  # was an internal error (NotADirectoryError) once Ray had started
+        lambda d: (
+            (d / "f").write_text("x"),
+            (d / "batch.toml").write_text('configs = ["fit.toml"]\nout = "f/b"\n'),
+            ["batch", d / "batch.toml"],
+        )[-1],
+        ("batch.toml", "out = 'f/b'", "is a file, not a folder"),
+    ),
+    (
         "fit-uncertainty-spp-huge",
         fit_cfg("uncertainty_spp = 4", "uncertainty_spp = 100000000"),
         ("fit.toml", "uncertainty_spp", "2^32"),
@@ -1244,6 +1285,88 @@ def test_the_largest_seed_renders_more_than_one_pass(base, tmp_path, capsys):
     assert code == 0, stderr
 
 
+def test_the_largest_seed_synthesizes_two_views(base, tmp_path, capsys):
+    """synth --seed 2^32 - 1 with two cameras: the second view's seed (+1000) wraps (was an
+    internal error from Mitsuba's sampler)."""
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    text = (work / "render.toml").read_text()
+    camera = text[text.index("[[scene.cameras]]") :].split("\n\n")[0]
+    edit(work / "render.toml", camera, f"{camera}\n\n{camera}")
+    args = ["synth", work / "render.toml", "--out", work / "c", "--spp", "1"]
+    code, _, stderr = run([*args, "--seed", str(2**32 - 1)], capsys)
+    assert code == 0, stderr
+    assert (work / "c" / "view_01.exr").is_file()
+
+
+def test_the_largest_seed_fits_with_every_solver(base, tmp_path, capsys):
+    """fit.seed = 2^32 - 1 (a batch's `seeds` reach the fit the same way) through every solver
+    with gains: the phases' seeds (seed + k), the steps' (seed * 100003 + i + 1) and their offsets
+    pass int32 and wrap modulo 2^32, as the renderer takes seeds (was an OverflowError from
+    fit.seed = 21475 on)."""
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    phases = "".join(
+        f'\n[[fit.phases]]\nsolver = "{solver}"\nsteps = 1\nspp = 2\n{extra}'
+        for solver, extra in (
+            ("adam", ""),
+            ("gn", "jacobian_spp = 2\nrefresh = 1\n"),
+            ("lm", "jacobian_spp = 2\n"),
+            ("bfgs", ""),
+        )
+    )
+    text = FIT.split("[[fit.phases]]")[0].replace("[fit]\n", "[fit]\nseed = 4294967295\n")
+    (work / "fit.toml").write_text(text + "gains = true\n" + phases)
+    code, _, stderr = run(["fit", work / "fit.toml", "--out", work / "run"], capsys)
+    assert code == 0, stderr
+    assert json.loads((work / "run" / "summary.json").read_text())["seed"] == 2**32 - 1
+
+
+def test_an_uncertainty_that_is_not_finite_leaves_its_parameters_undetermined():
+    """A curvature with a non-finite row, or all of it NaN (the Jacobian of a render at a
+    diverged fit's extreme values), leaves those coordinates undetermined (was LinAlgError from
+    eigh: the whole fit lost); residuals that are not finite are no observations."""
+    from fit.solvers.uncertainty import finite_rows, inverse_determined
+
+    inverse, undetermined = inverse_determined(np.full((3, 3), np.nan))
+    assert undetermined.all() and not inverse.any()
+    h = np.diag([2.0, 4.0, 1.0])
+    h[0, 2] = h[2, 0] = np.inf
+    inverse, undetermined = inverse_determined(h)
+    assert undetermined.tolist() == [True, False, True]
+    assert np.allclose(inverse, np.diag([0.0, 0.25, 0.0]))
+    r, jac = np.array([1.0, np.nan, 2.0]), np.array([[1.0, 2.0], [3.0, 4.0], [np.inf, 5.0]])
+    r, jac = finite_rows(r, jac)
+    assert r.tolist() == [1.0, 0.0, 0.0] and jac.tolist() == [[1.0, 2.0], [0.0, 0.0], [0.0, 0.0]]
+
+
+def test_a_fit_whose_uncertainty_renders_nan_is_written(base, tmp_path, capsys, monkeypatch):
+    """The uncertainty's Jacobian renders all NaN (as after Adam at lr = 100): the fit's run
+    folder is written, the parameter reported undetermined (was an internal error after every
+    step had run, only the checkpoint left)."""
+    import importlib
+
+    module = importlib.import_module("fit.solvers.uncertainty")  # the package exports a function
+    real = module.linearised
+
+    def nan(*args, **kwargs):
+        r, jac = real(*args, **kwargs)
+        return r, np.full_like(jac, np.nan)
+
+    monkeypatch.setattr(module, "linearised", nan)
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    free = '["glaze.pigment", "glaze.roughness"]'  # more than one: eigh of a 1x1 NaN passed
+    edit(work / "fit.toml", '["glaze.roughness"]', free)
+    code, stdout, stderr = run(["fit", work / "fit.toml", "--out", work / "run"], capsys)
+    assert code == 0, stderr
+    summary = json.loads((work / "run" / "summary.json").read_text())
+    # infinite (undetermined) standard deviations are null in the JSON
+    assert summary["std"] == {"glaze.pigment": [None] * 3, "glaze.roughness": None}
+    assert summary["poorly_determined"] == ["glaze.pigment", "glaze.roughness"]
+    assert (work / "run" / "preset.toml").is_file() and "inf" in stdout
+
+
 def test_unusual_cameras_render(base, tmp_path, capsys):
     """An orthographic camera at an odd size and a thin lens render."""
     work = tmp_path / "w"
@@ -1308,11 +1431,16 @@ def test_one_view_fit_writes_valid_json(base, tmp_path, capsys):
 def test_synth_force_replaces_a_capture_and_inspect_odd_downscale(base, tmp_path, capsys):
     work = tmp_path / "w"
     shutil.copytree(base, work)
-    (work / "cap" / "stale.txt").write_text("old")
+    (work / "cap" / "notes.txt").write_text("mine")  # not synth's: --force would delete it
     args = ["synth", work / "render.toml", "--out", work / "cap", "--spp", "1", "--force"]
     code, _, stderr = run(args, capsys)
+    assert code == 2 and "notes.txt, which synth did not write" in stderr, stderr
+    assert (work / "cap" / "notes.txt").read_text() == "mine"
+    (work / "cap" / "notes.txt").unlink()
+    old = {p.name for p in (work / "cap").iterdir()}
+    code, _, stderr = run(args, capsys)
     assert code == 0, stderr
-    assert (work / "cap" / "capture.toml").exists() and not (work / "cap" / "stale.txt").exists()
+    assert {p.name for p in (work / "cap").iterdir()} == old  # the capture, replaced whole
     assert not [p for p in work.iterdir() if p.name.startswith(".")]  # no temporary folder left
     args = ["inspect", work / "cap", "--no-silhouette", "--downscale", "3", "--sheet"]
     code, _, stderr = run([*args, work / "s.png"], capsys)

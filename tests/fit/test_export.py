@@ -349,6 +349,13 @@ def test_cli_exports_and_refuses_to_overwrite(tmp_path):
     assert forced.exit_code == 0, forced.output
     assert sorted(p.name for p in out.iterdir()) == ["material.mtlx"]
     assert leftovers(tmp_path) == []
+    # a user's files beside an earlier export: `--force` would delete them with the folder
+    (out / "scene.xml").write_text("<scene/>")
+    (out / "meshes").mkdir()
+    kept = cli("export", preset, "--to", "mitsuba", "--out", out, "--force")
+    assert kept.exit_code == 2, kept.output
+    assert "also holds meshes, scene.xml, which the earlier export did not write" in kept.output
+    assert sorted(p.name for p in out.iterdir()) == ["material.mtlx", "meshes", "scene.xml"]
 
 
 def test_cli_force_replaces_only_an_export(tmp_path, monkeypatch):

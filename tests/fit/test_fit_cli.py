@@ -45,10 +45,12 @@ CONFIG = (
 
 
 def test_fit_command_writes_a_run_folder(tmp_path):
+    """The run folder of a short Adam + BFGS fit. BFGS minimises one seed's loss: at 32 spp the
+    pigment ended up to 0.021 off by fit seed (0-2), at 128 spp within 0.006."""
     small_capture(tmp_path / "cap", views=2)
     (tmp_path / "fit.toml").write_text(
         CONFIG + '[[fit.phases]]\nsolver = "adam"\nsteps = 30\nspp = 8\ndownscale = 2\nlr = 0.1\n'
-        '[[fit.phases]]\nsolver = "bfgs"\nsteps = 10\nspp = 32\n'
+        '[[fit.phases]]\nsolver = "bfgs"\nsteps = 10\nspp = 128\n'
     )
     run = tmp_path / "result"
     out = run_cli("fit", tmp_path / "fit.toml", "--out", run, "--holdout", "1")
@@ -206,6 +208,9 @@ def test_ctrl_c_saves_a_checkpoint_and_a_partial_report(tmp_path, stop):
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["interrupted"] and 0 < len(summary["history"]) < 2000
     assert (tmp_path / "run" / "report.html").exists()
+    assert not (
+        tmp_path / "run" / "preset.toml"
+    ).exists()  # no material from a fit that did not end
 
 
 def test_resume_refuses_a_checkpoint_of_another_fit(tmp_path):
@@ -246,3 +251,29 @@ def test_unknown_free_key_is_one_line_and_leaves_no_folder(tmp_path):
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert "fit.toml: fit.free: glaze.shiny: not a built parameter" in out.stderr
     assert not (tmp_path / "run").exists()
+
+
+def test_ctrl_c_while_the_run_folder_is_written_waits_for_it(tmp_path, monkeypatch):
+    """A Ctrl-C that arrives while a finished fit writes its run folder (here: inside its report,
+    after the preset) is held until the folder is whole: stopped there, the new preset had sat
+    beside no summary, or beside the summary of the run it replaced."""
+    from fit.commands import fit as fit_command
+    from fit.config import load_fit_config
+
+    small_capture(tmp_path / "cap", spp=16)
+    (tmp_path / "fit.toml").write_text(RESUMABLE.replace("steps = 60", "steps = 2"))
+    real = fit_command.write_report
+
+    def report_then_ctrl_c(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(fit_command, "write_report", report_then_ctrl_c)
+    cfg = load_fit_config(tmp_path / "fit.toml")
+    try:
+        fit_command.run_fit(cfg, tmp_path / "run")
+    except KeyboardInterrupt:
+        pytest.fail("the Ctrl-C stopped the write")
+    names = {p.name for p in (tmp_path / "run").iterdir()}
+    assert {"preset.toml", "summary.json", "report.html"} <= names and "checkpoint.npz" not in names
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored

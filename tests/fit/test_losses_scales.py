@@ -111,18 +111,21 @@ def test_emitter_scale_derivatives():
 
 
 def test_emitter_scales_are_recovered():
-    """Lights 60 % brighter and the environment half as bright as configured: LM on a 128-spp
-    residual recovers both (measured -2.0 %, +2.1 %: the fixed seed's bias).
+    """Lights 60 % brighter and the environment half as bright as configured: LM on a 512-spp
+    residual recovers both from a 4096-spp target (measured over seeds 1-3: lights -0.9 to
+    -1.8 %, environment +0.6 to +1.3 %). The two trade against each other, so a noisier target
+    or fit misses by more: LM at 128 spp ended lights -5.6 to +1.6 % by seed; against a 512-spp
+    target the optimum itself sat at lights -4 % for one target's noise.
 
     With the config's dim environment (0.05 against lights of ~200) the environment hardly shows
     outside the background and is weakly determined: measured +21 % (LM, fixed seed), -9 % (Adam
     schedule). Hence a 10x brighter sky here."""
-    cfg, capture = sphere(lights=1.6, environment=0.5, sky=10.0)
+    cfg, capture = sphere(lights=1.6, environment=0.5, spp=4096, sky=10.0)
     problem = Problem(
         capture, cfg.material, resolve(cfg.material, ["lights.scale", "environment.scale"])
     )
     start = {"lights.scale": 1.0, "environment.scale": 1.0}
-    result = solve("lm", problem, problem.unconstrained(start), steps=30, spp=128, seed=1)
+    result = solve("lm", problem, problem.unconstrained(start), steps=30, spp=512, seed=1)
     assert result.values["lights.scale"] == pytest.approx(1.6, rel=0.04)
     assert result.values["environment.scale"] == pytest.approx(0.5, rel=0.04)
 
