@@ -17,7 +17,7 @@ import numpy as np
 from captures.capture import Capture
 
 from ..material import Free, Material
-from .scene import MATERIAL_PREFIX, batch_sensor_dict, scene_dict, sensor_dict
+from .scene import MATERIAL_PREFIX, batch_sensor_dict, load_scene, scene_dict, sensor_dict
 
 log = logging.getLogger(__name__)
 
@@ -255,12 +255,7 @@ class _Group:
         else:
             scene["sensor"] = batch_sensor_dict(cameras, 1)
             parts = [(0, views)]
-        # Mitsuba's default load (`load_scene` keeps the dict's order but not this): with the
-        # merge off, a frozen Jacobian of emitter scales replayed with another `Renderer`'s
-        # frozen passes alive gave the environment's column wrong by up to 11 % at a pixel
-        # (tests/fit/test_bound_starts.py; right unfrozen, or with the other freed). Merged, the
-        # shapes' order, and so a seed's samples, can differ between loads (1 in 20 to 50).
-        self.views, self.scene = views, mi.load_dict(scene)
+        self.views, self.scene = views, load_scene(scene)
         self.params = mi.traverse(self.scene)
         name = capture.views[views[0]].name
         self.targets = [_targets(f, self.params, name) for f in free]

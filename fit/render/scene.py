@@ -27,15 +27,20 @@ MATERIAL_PREFIX = "object.bsdf."
 def load_scene(scene: dict) -> mi.Scene:
     """Mitsuba's scene of a scene dict, its shapes and emitters in the dict's order.
 
-    `mi.load_dict` merges identical objects by default (`optimize`), and the shapes then come in
-    an order that varies from one load to the next within a process (measured: the two lights
-    of a scene swapped in 3 of 60 loads of one dict). The emitter sampled by a random number
-    follows that order, so a render at the same seed drew other samples (an image mean 4 %
-    off at 16 spp, an equally valid estimate): renders were not repeatable. Without the merge
-    the order is the dict's (60 of 60 loads, parallel or not). For one-off renders (targets,
-    `render`, `synth`, `inspect`); a `Renderer`'s frozen passes keep the default load (see
-    there)."""
-    return mi.load_dict(scene, optimize=False)
+    `mi.load_dict` runs the parser's optimisations, and one of them, `merge_meshes` (shapes that
+    share a material combined), lists the shapes in an order that varies from one load of a dict
+    to the next within a process (measured: the two lights of a scene swapped in 7 of 100 loads).
+    The emitter a random number picks follows that order, so a render at the same seed drew
+    other samples (an image mean 4 % off at 16 spp, an equally valid estimate): renders and fits
+    were not repeatable. Without it the order is the dict's (100 of 100 loads). The other,
+    `merge_equivalent` (identical objects shared), stays: without it too, a frozen Jacobian of
+    emitter scales replayed beside another `Renderer`'s frozen passes came out wrong at a pixel
+    (the environment's column 11 % off; tests/fit/test_bound_starts.py)."""
+    config = mi.parser.ParserConfig(mi.variant())
+    config.merge_meshes = False
+    state = mi.parser.parse_dict(config, scene)
+    mi.parser.transform_all(config, state)
+    return mi.parser.instantiate(config, state)
 
 
 def sensor_dict(camera: Camera, spp: int) -> dict:

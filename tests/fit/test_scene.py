@@ -256,10 +256,10 @@ def test_an_environment_maps_sky_is_up(tmp_path):
 
 
 def test_a_scene_loads_its_lights_in_order_so_a_seed_repeats(tmp_path):
-    """Mitsuba's default load merges identical objects and then lists the shapes in an order
-    that varies between loads (two identical lights swapped in 3 of 60 loads, never in the dict's
-    order): the emitter a random number picks follows it, so a seed's render changed. `load_scene`
-    keeps the dict's order; 40 loads of a scene with two identical lights render alike."""
+    """Mitsuba's default load merges meshes that share a material and then lists the shapes in
+    an order that varies between loads (two identical lights swapped in 7 of 100 loads): the
+    emitter a random number picks follows it, so a seed's render changed. `load_scene` keeps
+    the dict's order; 40 loads of a scene with two identical lights render alike."""
     from fit.render import load_scene
 
     light = {"type": "rectangle", "target": [0, 0, 0], "size": [0.5, 0.5], "radiance": 50.0}
