@@ -181,11 +181,17 @@ def check_truth(capture: Capture, free: list[Free], path, material=None) -> None
             )
     for f in free:
         value = capture.truth.get(f.key)
-        if value is not None and np.size(value) != f.size:
+        if value is None:
+            continue
+        if np.size(value) != f.size:
             raise CaptureError(
                 f"{path}: truth.{f.key}: has {np.size(value)} value(s) but the parameter has "
                 f"{f.size}; give {'one number' if f.size == 1 else f'{f.size} numbers'}"
             )
+        try:  # a truth no fit can reach would be scored as the fit's error
+            f.spec.check(value, f"{path}: truth.{f.key}")
+        except ValueError as err:
+            raise CaptureError(str(err)) from None
 
 
 def fit_identity(prepared: Prepared, cfg: FitConfig) -> dict:

@@ -930,6 +930,14 @@ CASES: list[Case] = [
         ("capture.toml", "truth.glaze.roughness"),
     ),
     (
+        "fit-truth-out-of-bounds",  # scored, it read as the fit's error (-7.66)
+        lambda d: (
+            edit(d / "cap" / "capture.toml", '"glaze.ior" = 1.52', '"glaze.ior" = 9.0')
+            or fit_cfg('free = ["glaze.roughness"]', 'free = ["glaze.ior"]')(d)
+        ),
+        ("capture.toml", "truth.glaze.ior", "outside its bounds [1.01, 3.0]"),
+    ),
+    (
         "fit-truth-scalar-for-rgb",
         lambda d: (
             edit(
