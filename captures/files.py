@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterable, Iterator
@@ -144,8 +145,9 @@ def foreign_entries(folder: str | Path, main: str | Path) -> list[str]:
         text = main.read_text(errors="replace")
     except OSError:
         text = ""
-    return sorted(
-        p.name
-        for p in folder.iterdir()
-        if p.name != main.name and (not p.is_file() or p.name not in text)
-    )
+
+    def named(name: str) -> bool:  # as a whole file name, not inside another ("a.exr", "data.exr")
+        return re.search(rf"(?<![\w.-]){re.escape(name)}(?![\w.-])", text) is not None
+
+    ours = {main.name} | {p.name for p in folder.iterdir() if p.is_file() and named(p.name)}
+    return sorted(p.name for p in folder.iterdir() if p.name not in ours)

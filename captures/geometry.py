@@ -243,7 +243,7 @@ def check_obj(path: str | Path, face_normals: bool = False) -> ObjCheck:
     counts = {"v": 0, "vt": 0, "vn": 0}
     faces, faces_with_vt = 0, 0
     positions, triangles = [], []  # every vertex; each face's first three corners (0-based)
-    corners_v, sizes = [], []  # every face's vertex indices (0-based), its corner count
+    corners_v, corners_t, sizes = [], [], []  # each face's vertex and texture indices, corners
     for number, line in enumerate(text.splitlines(), 1):
         words = line.split()
         if not words:
@@ -286,6 +286,9 @@ def check_obj(path: str | Path, face_normals: bool = False) -> ObjCheck:
             indices = [int(c.split("/")[0]) - 1 for c in corners]
             triangles.append(indices[:3])
             corners_v += indices
+            for corner in corners:
+                parts = corner.split("/")
+                corners_t.append(int(parts[1]) - 1 if len(parts) > 1 and parts[1] else -1)
             sizes.append(len(indices))
             if all(len(c.split("/")) > 1 and c.split("/")[1] != "" for c in corners):
                 faces_with_vt += 1
@@ -301,13 +304,31 @@ def check_obj(path: str | Path, face_normals: bool = False) -> ObjCheck:
             "line): nothing to render; check the export"
         )
     warnings = shading_warnings(
-        path, p, np.asarray(corners_v), np.asarray(sizes), counts["vn"] > 0, face_normals
+        path,
+        p,
+        np.asarray(corners_v),
+        np.asarray(sizes),
+        counts["vn"] > 0,
+        face_normals,
+        np.asarray(corners_t),
     )
     return ObjCheck(faces, faces - faces_with_vt if counts["vt"] else faces, warnings)
 
 
 #: The dihedral angle (degrees) above which an edge is sharp: interpolated normals round it.
 SHARP_DEGREES = 45.0
+
+
+def _edge_pairs(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For directed edges `a -> b` (one per polygon side): the two sides of each edge that
+    exactly two sides share (`first`, `second`, indices into `a`), and how often each side's
+    edge is used."""
+    undirected = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)
+    _, edge, uses = np.unique(undirected, axis=0, return_inverse=True, return_counts=True)
+    edge = edge.ravel()
+    pair = np.flatnonzero(uses[edge] == 2)
+    order = pair[np.argsort(edge[pair], kind="stable")]
+    return order[0::2], order[1::2], uses[edge]
 
 
 def shading_warnings(
@@ -317,74 +338,91 @@ def shading_warnings(
     sizes: np.ndarray,
     has_normals: bool,
     face_normals: bool = False,
+    texcoords: np.ndarray | None = None,
 ) -> tuple[str, ...]:
     """Where a mesh's renders will not show the object it describes, as one-line warnings.
 
-    Without `vn` normals Mitsuba interpolates vertex normals over all faces, so a sharp edge
-    (a box's) renders rounded (measured on a cube of 8 shared vertices: the image off by half its
-    mean next to the same cube with its faces apart, and a fit to photographs of the sharp cube
-    missed pigment by 0.27); and a face's front follows its corners' order, so faces wound
-    against their neighbours, or a closed mesh wound inside out, are seen from behind: black
-    under the one-sided materials (a sphere with half its faces reversed rendered 40 % black).
-    With `vn` normals (and `face_normals` off) the renderer shades by them and neither applies.
-    `corners`: every face's vertex indices in order, `sizes`: each face's corner count."""
+    Without `vn` normals Mitsuba interpolates vertex normals over the faces that share a vertex
+    (a vertex being a position and its texture coordinates: a UV seam splits it), so a sharp edge
+    inside a UV island renders rounded (measured on a cube of 8 shared vertices: the image off by
+    half its mean next to the same cube with its faces apart, and a fit to photographs of the
+    sharp cube missed pigment by 0.27). And a face's front follows its corners' order, so faces
+    wound against their neighbours, or a closed part wound inside out, are seen from behind:
+    black under the one-sided materials (a sphere with half its faces reversed rendered 40 %
+    black). With `vn` normals (and `face_normals` off) the renderer shades by them and neither
+    applies. `corners`: every face's vertex indices in order, `sizes`: each face's corner count,
+    `texcoords`: each corner's texture index (-1: none)."""
     if has_normals and not face_normals:
         return ()
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
     face_of = np.repeat(np.arange(len(sizes)), sizes)
     following = np.arange(len(corners)) + 1
-    ends = starts + sizes
-    following[ends - 1] = starts  # each polygon's last corner joins its first
-    a, b = corners, corners[following]
-    # each face's normal: the sum of its fan's triangles (Newell's for a planar polygon)
+    following[starts + sizes - 1] = starts  # each polygon's last corner joins its first
     anchor = positions[corners[np.repeat(starts, sizes)]]
+    # each face's normal: the sum of its fan's triangles (Newell's for a planar polygon)
     normals = np.zeros((len(sizes), 3))
-    np.add.at(normals, face_of, np.cross(positions[a] - anchor, positions[b] - anchor))
+    sides = np.cross(positions[corners] - anchor, positions[corners[following]] - anchor)
+    np.add.at(normals, face_of, sides)
     length = np.linalg.norm(normals, axis=1)
     ok = length > 0
     normals[ok] /= length[ok, None]
+    a, b = corners, corners[following]
     keep = a != b
-    a, b, face_of = a[keep], b[keep], face_of[keep]
-    undirected = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)
-    _, edge, uses = np.unique(undirected, axis=0, return_inverse=True, return_counts=True)
-    edge = edge.ravel()
-    pair = uses[edge] == 2  # edges shared by exactly two faces
-    order = np.argsort(edge[pair], kind="stable")
-    first, second = (np.flatnonzero(pair)[order][k::2] for k in (0, 1))
-    same_way = a[first] == a[second]  # both faces run along the edge the same way
-    cosine = np.sum(normals[face_of[first]] * normals[face_of[second]], axis=1)
-    cosine = np.where(same_way, -cosine, cosine)  # as if the two faces were wound alike
-    valid = ok[face_of[first]] & ok[face_of[second]]
     out = []
-    if not (has_normals or face_normals):  # shading by interpolated normals
+    if not (has_normals or face_normals):  # shaded by normals interpolated over shared vertices
+        t = np.zeros_like(corners) if texcoords is None else texcoords + 1
+        vertex = corners.astype(np.int64) * (int(t.max(initial=0)) + 1) + t
+        first, second, _ = _edge_pairs(vertex[keep], vertex[following][keep])
+        faces = face_of[keep]
+        same_way = vertex[keep][first] == vertex[keep][second]
+        cosine = np.sum(normals[faces[first]] * normals[faces[second]], axis=1)
+        cosine = np.where(same_way, -cosine, cosine)  # as if the two faces were wound alike
+        valid = ok[faces[first]] & ok[faces[second]]
         sharp = int(np.sum(valid & (cosine < np.cos(np.radians(SHARP_DEGREES)))))
         if sharp:
             out.append(
                 f"{path}: has no vertex normals (vn), so the renderer interpolates normals "
-                f"across every edge and rounds its {sharp} edges sharper than "
-                f"{SHARP_DEGREES:.0f} degrees; export it with normals (sharp edges split), or "
-                "set face_normals = true in its geometry table for a faceted object"
+                f"across its edges and rounds the {sharp} sharper than {SHARP_DEGREES:.0f} "
+                "degrees (those inside a UV island); export it with normals (sharp edges "
+                "split), or set face_normals = true in its geometry table for a faceted object"
             )
-    flipped = int(np.sum(same_way))
+    fix = (
+        "flip those faces (Blender: Mesh > Normals > Recalculate Outside) and export it again"
+        if face_normals
+        else "recalculate its normals outside (Blender: Mesh > Normals > Recalculate Outside) "
+        "and export it again, with normals"
+    )
+    shading = "with face_normals" if face_normals else "with no vertex normals to shade by"
+    first, second, uses = _edge_pairs(a[keep], b[keep])
+    flipped = int(np.sum(a[keep][first] == a[keep][second]))
     if flipped:
         out.append(
             f"{path}: {flipped} of its {len(first)} shared edges join faces wound in opposite "
-            "directions, and with no vertex normals to shade by, a face's front follows its "
-            "corners' order: faces seen from behind render black (the materials are one-sided); "
-            "recalculate its normals outside (Blender: Mesh > Normals > Recalculate Outside) and "
-            "export it again, with normals"
+            f"directions, and {shading} a face's front follows its corners' order: faces seen "
+            f"from behind render black (the materials are one-sided); {fix}"
         )
-    elif not np.any(uses == 1) and len(first):
-        # closed and wound alike: inside out if its signed volume is negative
-        tri = positions[corners[np.repeat(starts, sizes)]]
-        volume = np.sum(np.cross(positions[corners], positions[corners[following]]) * tri) / 6
-        if volume < 0:
-            out.append(
-                f"{path}: its faces are wound inside out (a closed mesh of negative volume), and "
-                "with no vertex normals to shade by the renderer sees every face from behind: "
-                "black (the materials are one-sided); flip its normals (Blender: Mesh > Normals "
-                "> Flip) and export it again, with normals"
-            )
+        return tuple(out)
+    # each closed part (every edge shared by two faces) wound alike: inside out if its volume
+    # is negative
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(positions)
+    graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n))
+    _, part = connected_components(graph, directed=False)
+    part_of_corner = part[corners]
+    open_parts = np.unique(part_of_corner[keep][uses != 2])
+    volume = np.bincount(
+        part_of_corner, weights=np.sum(sides * anchor, axis=1) / 6, minlength=part.max() + 1
+    )
+    inside_out = [k for k in np.flatnonzero(volume < 0) if k not in set(open_parts.tolist())]
+    if inside_out:
+        out.append(
+            f"{path}: {len(inside_out)} of its closed parts are wound inside out (negative "
+            f"volume), and {shading} the renderer sees their faces from behind: black (the "
+            "materials are one-sided); flip their normals (Blender: Mesh > Normals > Flip) and "
+            "export it again" + ("" if face_normals else ", with normals")
+        )
     return tuple(out)
 
 

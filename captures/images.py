@@ -230,10 +230,11 @@ def image_problem(path: str | Path) -> str | None:
     reader.close()
     if spec.width < 1 or spec.height < 1 or spec.nchannels < 1:
         return f"'{path.name}' has no pixels; give another image"
-    if spec.nchannels not in (1, 3, 4):  # Mitsuba's bitmap knows no other layout of channels
+    grey_alpha = spec.nchannels == 2 and spec.channelnames[1] == "A"
+    if spec.nchannels not in (1, 3, 4) and not grey_alpha:  # Mitsuba's bitmap: Y, YA, RGB(A)
         return (
             f"'{path.name}' has {spec.nchannels} channels ({', '.join(spec.channelnames)}); "
-            "save it as grey (1 channel), RGB (3) or RGBA (4)"
+            "save it as grey (1 channel), grey and alpha (2: Y, A), RGB (3) or RGBA (4)"
         )
     pixels, problem = _decode(path)
     if problem is not None:

@@ -159,11 +159,8 @@ def bounding_sphere(geometry: Geometry) -> tuple[np.ndarray, float]:
         points = geometry.data.positions
         lo, hi = np.min(points, axis=0), np.max(points, axis=0)
         return (lo + hi) / 2, float(np.linalg.norm(hi - lo) / 2)
-    points = [
-        [float(x) for x in line.split()[1:4]]
-        for line in Path(geometry.path).read_text(errors="replace").splitlines()
-        if line.startswith("v ")
-    ]
+    words = (line.split() for line in Path(geometry.path).read_text(errors="replace").splitlines())
+    points = [[float(x) for x in w[1:4]] for w in words if w and w[0] == "v"]
     lo, hi = np.min(points, axis=0), np.max(points, axis=0)
     return (lo + hi) / 2, float(np.linalg.norm(hi - lo) / 2)
 

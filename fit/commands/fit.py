@@ -334,8 +334,9 @@ def run_fit(
 
         result, spread, start = run_starts(cfg, prepared, holdout, on_start)
         wall = time.perf_counter() - began
-        summary = _write(cfg, out, capture, held, problem, start, result, wall, starts=spread)
-        Checkpoint(out / "checkpoint.npz").remove()  # an earlier single-start run's, if any
+        with _finish_first():
+            summary = _write(cfg, out, capture, held, problem, start, result, wall, starts=spread)
+            Checkpoint(out / "checkpoint.npz").remove()  # an earlier single-start run's, if any
         return summary
     checkpoint = Checkpoint(out / "checkpoint.npz")
     checkpoint.identity = fit_identity(prepared, cfg)

@@ -62,14 +62,16 @@ def inverse_determined(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def finite_rows(r: np.ndarray, jac: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`r` and `jac` with each residual whose value or derivative is not finite zeroed (no
-    observation): a render at a diverged fit's extreme values was NaN throughout (Adam at
-    lr 100), and a parameter left without observations is reported undetermined."""
-    bad = ~(np.isfinite(r) & np.all(np.isfinite(jac), axis=1))
-    if not bad.any():
+    """`r` and `jac` with what is not finite zeroed: a residual that is not finite is no
+    observation (its row of `jac` zeroed too), a derivative that is not finite no information
+    on its parameter. A render at a diverged fit's extreme values was NaN throughout (Adam at
+    lr 100); a parameter left without information is reported undetermined, the others keep
+    theirs."""
+    bad_r, bad_j = ~np.isfinite(r), ~np.isfinite(jac)
+    if not (bad_r.any() or bad_j.any()):
         return r, jac
-    r, jac = r.copy(), jac.copy()
-    r[bad], jac[bad] = 0.0, 0.0
+    r, jac = np.where(bad_r, 0.0, r), np.where(bad_j, 0.0, jac)
+    jac[bad_r] = 0.0
     return r, jac
 
 

@@ -347,7 +347,7 @@ def test_a_mesh_without_normals_says_how_it_will_shade(tmp_path, caplog):
 
     plain = cube_obj(tmp_path / "cube.obj")
     (warning,) = check_obj(plain).warnings
-    assert "cube.obj: has no vertex normals" in warning and "12 edges sharper" in warning
+    assert "cube.obj: has no vertex normals" in warning and "rounds the 12 sharper" in warning
     assert "face_normals = true" in warning
     assert check_obj(plain, face_normals=True).warnings == ()
     assert check_obj(cube_obj(tmp_path / "vn.obj", normals=True)).warnings == ()
@@ -355,8 +355,33 @@ def test_a_mesh_without_normals_says_how_it_will_shade(tmp_path, caplog):
     # two neighbouring faces flipped: their 4 + 4 edges, the one they share counted twice
     mixed = check_obj(cube_obj(tmp_path / "mixed.obj", flip=(0, 3))).warnings
     assert any("6 of its 12 shared edges join faces wound in opposite" in w for w in mixed)
+    (flat,) = check_obj(tmp_path / "mixed.obj", face_normals=True).warnings
+    assert "with face_normals a face's front" in flat and "with normals" not in flat
     inside_out = check_obj(cube_obj(tmp_path / "in.obj", flip=range(6)), face_normals=True)
-    assert len(inside_out.warnings) == 1 and "wound inside out" in inside_out.warnings[0]
+    assert len(inside_out.warnings) == 1 and "1 of its closed parts" in inside_out.warnings[0]
+    # two closed parts, the second inside out: their volumes would cancel in one sum
+    good, bad = (tmp_path / "in.obj").read_text(), (tmp_path / "cube.obj").read_text()
+    two = [line for line in good.splitlines() if line.startswith("v ")]
+    two += [" ".join(["v", *(str(float(x) + 5) for x in line.split()[1:])]) for line in two]
+    two += [line for line in bad.splitlines() if line.startswith("f ")]
+    two += [
+        "f " + " ".join(str(int(i) + 8) for i in line.split()[1:])
+        for line in good.splitlines()
+        if line.startswith("f ")
+    ]
+    (tmp_path / "two.obj").write_text("\n".join(two) + "\n")
+    (part,) = check_obj(tmp_path / "two.obj", face_normals=True).warnings
+    assert "1 of its closed parts are wound inside out" in part
+    # a UV seam on every edge (each face its own island): Mitsuba splits the vertices there
+    islands = [line for line in bad.splitlines() if line.startswith("v ")]
+    islands += ["vt 0 0", "vt 1 0", "vt 1 1", "vt 0 1"]
+    islands += [
+        "f " + " ".join(f"{i}/{k + 1}" for k, i in enumerate(line.split()[1:]))
+        for line in bad.splitlines()
+        if line.startswith("f ")
+    ]
+    (tmp_path / "islands.obj").write_text("\n".join(islands) + "\n")
+    assert check_obj(tmp_path / "islands.obj").warnings == ()
     assert check_obj(cube_obj(tmp_path / "in_vn.obj", flip=range(6), normals=True)).warnings == ()
 
     caplog.set_level("WARNING")
@@ -410,20 +435,40 @@ def test_an_object_far_from_the_origin_is_refused(tmp_path, offset, far):
         parse_scene(sphere, tmp_path / "s.toml")
 
 
-@pytest.mark.parametrize("channels", [2, 5])
-def test_an_image_of_other_channels_is_refused_by_name(tmp_path, channels):
-    """Mitsuba's bitmap reads grey, RGB and RGBA only: a 2-channel environment map had ended in
-    an internal error inside the renderer; now it is refused with the fix."""
+@pytest.mark.parametrize("names", [("R", "G"), ("R", "G", "B", "A", "Z"), ("Y", "A")])
+def test_an_image_of_other_channels_is_refused_by_name(tmp_path, names):
+    """Mitsuba's bitmap reads grey, grey and alpha, RGB and RGBA: a 2-channel (R, G) environment
+    map had ended in an internal error inside the renderer; now it is refused with the fix."""
     import OpenImageIO as oiio
 
     path = tmp_path / "sky.exr"
+    spec = oiio.ImageSpec(8, 4, len(names), "float")
+    spec.channelnames = names
     out = oiio.ImageOutput.create(str(path))
-    out.open(str(path), oiio.ImageSpec(8, 4, channels, "float"))
-    out.write_image(np.ones((4, 8, channels), np.float32))
+    out.open(str(path), spec)
+    out.write_image(np.ones((4, 8, len(names)), np.float32))
     out.close()
     table = scene_table(environment={"type": "envmap", "file": "sky.exr"})
-    with pytest.raises(CaptureError, match=rf"sky.exr' has {channels} channels .* RGBA \(4\)"):
+    if names == ("Y", "A"):
+        assert isinstance(parse_scene(table, tmp_path / "s.toml").environment, EnvMap)
+        return
+    with pytest.raises(CaptureError, match=rf"sky.exr' has {len(names)} channels .* RGBA \(4\)"):
         parse_scene(table, tmp_path / "s.toml")
+
+
+def test_an_output_folder_names_only_whole_files_as_its_own(tmp_path):
+    """`--force` replaces a folder whole: only files its main file names, as whole names, are
+    the tool's (a `data.exr` reference does not make a user's `a.exr` the export's)."""
+    from captures.files import foreign_entries
+
+    (tmp_path / "material.xml").write_text(
+        '<string name="filename" value="data.exr"/>\n<string value="textures/glaze.mask.exr"/>'
+    )
+    for name in ("data.exr", "a.exr", "glaze.mask.exr", "mask.exr", "notes.txt"):
+        (tmp_path / name).write_text("x")
+    (tmp_path / "meshes").mkdir()
+    found = foreign_entries(tmp_path, tmp_path / "material.xml")
+    assert found == ["a.exr", "mask.exr", "meshes", "notes.txt"]
 
 
 def test_a_toml_saved_with_a_byte_order_mark_reads(tmp_path):
