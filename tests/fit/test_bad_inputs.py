@@ -1333,7 +1333,8 @@ def test_the_largest_seed_fits_with_every_solver(base, tmp_path, capsys):
 def test_an_uncertainty_that_is_not_finite_leaves_its_parameters_undetermined():
     """A curvature with a non-finite row, or all of it NaN (the Jacobian of a render at a
     diverged fit's extreme values), leaves those coordinates undetermined (was LinAlgError from
-    eigh: the whole fit lost); residuals that are not finite are no observations."""
+    eigh: the whole fit lost); a residual that is not finite is no observation, a derivative
+    that is not finite no information on its parameter (the others keep theirs)."""
     from fit.solvers.uncertainty import finite_rows, inverse_determined
 
     inverse, undetermined = inverse_determined(np.full((3, 3), np.nan))
@@ -1345,7 +1346,7 @@ def test_an_uncertainty_that_is_not_finite_leaves_its_parameters_undetermined():
     assert np.allclose(inverse, np.diag([0.0, 0.25, 0.0]))
     r, jac = np.array([1.0, np.nan, 2.0]), np.array([[1.0, 2.0], [3.0, 4.0], [np.inf, 5.0]])
     r, jac = finite_rows(r, jac)
-    assert r.tolist() == [1.0, 0.0, 0.0] and jac.tolist() == [[1.0, 2.0], [0.0, 0.0], [0.0, 0.0]]
+    assert r.tolist() == [1.0, 0.0, 2.0] and jac.tolist() == [[1.0, 2.0], [0.0, 0.0], [0.0, 5.0]]
 
 
 def test_a_fit_whose_uncertainty_renders_nan_is_written(base, tmp_path, capsys, monkeypatch):
