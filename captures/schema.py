@@ -434,11 +434,18 @@ class EnvMapSpec(StrictModel):
     @field_validator("file")
     @classmethod
     def _is_image(cls, path: Path) -> Path:
-        from .images import image_problem
+        from .images import image_problem, read_image
 
         problem = image_problem(path)
         if problem is not None:
             raise ValueError(problem)
+        pixels = read_image(path)
+        low = float(pixels[..., :3].min())
+        if low < 0:  # a constant environment below 0 is refused too
+            raise ValueError(
+                f"'{path.name}' holds negative radiance (down to {low:.4g}); light is not "
+                "negative: clip the map at 0"
+            )
         return path
 
     def build(self) -> EnvMap:

@@ -157,7 +157,10 @@ class _Builder:
     def error(self, where: str, problem: str) -> ConfigError:
         return ConfigError(f"{self.file}: {where}: {problem}")
 
-    def texture(self, value, where: str, raw: bool) -> tuple[dict, Path]:
+    def texture(
+        self, value, where: str, raw: bool, spec: ParamSpec | None = None
+    ) -> tuple[dict, Path]:
+        """A bitmap texture of the file `value` names, its values within `spec`'s bounds."""
         if not isinstance(value, str):
             raise self.error(where, "must be a texture file name")
         path = (self.file.parent / value).resolve()
@@ -170,13 +173,31 @@ class _Builder:
         problem = image_problem(path)
         if problem is not None:
             raise self.error(where, problem)
+        if spec is not None:
+            self.texel_range(spec, path, value, where)
         return {"type": "bitmap", "filename": str(path), "raw": raw}, path
+
+    def texel_range(self, spec: ParamSpec, path: Path, value: str, where: str) -> None:
+        """Refuse a texture whose texels leave the parameter's bounds (a float image can hold
+        any value: a pigment of 3 or -1 rendered without a word; 8-bit files stay in [0, 1])."""
+        from captures.images import read_image
+
+        pixels = read_image(path)
+        if pixels.shape[-1] in (2, 4):  # the alpha channel is not the parameter's
+            pixels = pixels[..., :-1]
+        low, high = float(pixels.min()), float(pixels.max())
+        if low < spec.lower or high > spec.upper:
+            raise self.error(
+                where,
+                f"{value!r} holds values from {low:.4g} to {high:.4g}, outside {spec.key}'s "
+                f"bounds [{spec.lower}, {spec.upper}] ({spec.doc}); rescale the image",
+            )
 
     def param(self, spec: ParamSpec, value, where: str, design: str, traverse: str):
         """A declared parameter's value as Mitsuba wants it, recorded in the table."""
         if spec.kind == "rgb":
             if isinstance(value, str):  # 8-bit files are sRGB-decoded
-                out, path = self.texture(value, where, raw=False)
+                out, path = self.texture(value, where, raw=False, spec=spec)
                 self.params[design] = Param(design, spec, None, f"{traverse}.data", path)
                 return out
             if isinstance(value, int | float) and not isinstance(value, bool):
@@ -247,7 +268,9 @@ class _Builder:
         texture = table.pop("texture", None)
         out = self.plugin(FBM, table, where, layer, f"{layer}.mask.", mask=True)
         if texture is not None:
-            out["texture"], path = self.texture(texture, f"{where}.texture", raw=True)
+            out["texture"], path = self.texture(
+                texture, f"{where}.texture", raw=True, spec=MASK_TEXTURE
+            )
             design = key(layer, "texture", True)  # a painted mask is linear
             self.params[design] = Param(
                 design, MASK_TEXTURE, None, f"{layer}.mask.texture.data", path

@@ -409,6 +409,22 @@ CASES: list[Case] = [
         ("render.toml", "scene.environment.file", "sky.exr", "not finite"),
     ),
     (
+        "envmap-negative",  # rendered as negative light before
+        lambda d: (
+            write_image(d / "sky.exr", np.full((4, 8, 3), -1.0, np.float32))
+            and render_cfg(ENV, 'environment = {type = "envmap", file = "sky.exr"}')(d)
+        ),
+        ("render.toml", "scene.environment.file", "sky.exr", "negative radiance"),
+    ),
+    (
+        "texture-pigment-above-one",  # a float image: a pigment of 3 rendered without a word
+        lambda d: (
+            write_image(d / "pig.exr", np.full((4, 8, 3), 3.0, np.float32))
+            and render_cfg(TEX, 'pigment = "pig.exr"')(d)
+        ),
+        ("render.toml", "material.pigment", "pig.exr", "from 3 to 3", "[0.0, 1.0]", "rescale"),
+    ),
+    (
         "envmap-folder",
         lambda d: (
             (d / "dir.exr").mkdir()
