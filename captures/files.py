@@ -151,3 +151,16 @@ def foreign_entries(folder: str | Path, main: str | Path) -> list[str]:
 
     ours = {main.name} | {p.name for p in folder.iterdir() if p.is_file() and named(p.name)}
     return sorted(p.name for p in folder.iterdir() if p.name not in ours)
+
+
+def refuse_foreign(folder: str | Path, main: str | Path, tool: str) -> None:
+    """Raise `InputError` when `folder`, which `--force` would replace whole, holds anything
+    `tool`'s earlier output did not write there (`foreign_entries`)."""
+    foreign = foreign_entries(folder, main)
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        raise InputError(
+            f"--out {folder}: also holds {shown}, which {tool} did not write (its "
+            f"{Path(main).name} names no such file); --force replaces the whole folder: move "
+            "them out or choose another path"
+        )

@@ -225,6 +225,8 @@ class ObjCheck:
     faces: int
     without_uvs: int
     warnings: tuple[str, ...] = ()
+    bounds: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+    """The lowest and highest corner of its vertices' box."""
 
 
 def check_obj(path: str | Path, face_normals: bool = False) -> ObjCheck:
@@ -312,7 +314,8 @@ def check_obj(path: str | Path, face_normals: bool = False) -> ObjCheck:
         face_normals,
         np.asarray(corners_t),
     )
-    return ObjCheck(faces, faces - faces_with_vt if counts["vt"] else faces, warnings)
+    bounds = (tuple(p.min(axis=0).tolist()), tuple(p.max(axis=0).tolist()))
+    return ObjCheck(faces, faces - faces_with_vt if counts["vt"] else faces, warnings, bounds)
 
 
 #: The dihedral angle (degrees) above which an edge is sharp: interpolated normals round it.

@@ -46,6 +46,8 @@ class ObjFile:
     """Shade each face by its own normal (flat) rather than normals interpolated over faces."""
     warnings: tuple[str, ...] = field(default=(), compare=False)
     """How the renderer's shading will differ from the object (`captures.geometry.check_obj`)."""
+    bounds: tuple | None = field(default=None, compare=False)
+    """Its vertices' box (lowest, highest corner) where `check_obj` read it; else read again."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -159,9 +161,13 @@ def bounding_sphere(geometry: Geometry) -> tuple[np.ndarray, float]:
         points = geometry.data.positions
         lo, hi = np.min(points, axis=0), np.max(points, axis=0)
         return (lo + hi) / 2, float(np.linalg.norm(hi - lo) / 2)
-    words = (line.split() for line in Path(geometry.path).read_text(errors="replace").splitlines())
-    points = [[float(x) for x in w[1:4]] for w in words if w and w[0] == "v"]
-    lo, hi = np.min(points, axis=0), np.max(points, axis=0)
+    if geometry.bounds is not None:
+        lo, hi = (np.asarray(corner, float) for corner in geometry.bounds)
+    else:
+        text = Path(geometry.path).read_text(errors="replace")
+        words = (line.split() for line in text.splitlines())
+        points = [[float(x) for x in w[1:4]] for w in words if w and w[0] == "v"]
+        lo, hi = np.min(points, axis=0), np.max(points, axis=0)
     return (lo + hi) / 2, float(np.linalg.norm(hi - lo) / 2)
 
 

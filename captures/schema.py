@@ -159,7 +159,9 @@ class ObjSpec(StrictModel):
         check = check_obj(self.file, self.face_normals)
         for message in check.warnings:
             log.warning(message)
-        return ObjFile(self.file, check.without_uvs == 0, self.face_normals, check.warnings)
+        return ObjFile(
+            self.file, check.without_uvs == 0, self.face_normals, check.warnings, check.bounds
+        )
 
 
 def _geometry_shorthand(value):

@@ -453,7 +453,7 @@ def synth(
 ) -> None:
     """Render a synthetic capture (images, manifest, [truth]) from a config (or a preset with
     --scene)."""
-    from captures.files import check_output, foreign_entries
+    from captures.files import check_output, refuse_foreign
 
     try:
         the_scene, material, config_spp = _scene_and_material(config, scene)
@@ -472,14 +472,7 @@ def synth(
                 "replaces only a capture made by synth: choose another path"
             )
         if out.is_dir() and (out / "capture.toml").is_file():
-            foreign = foreign_entries(out, out / "capture.toml")
-            if foreign:
-                shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
-                raise InputError(
-                    f"--out {out}: also holds {shown}, which synth did not write (its "
-                    "capture.toml names no such file); --force replaces the whole folder: move "
-                    "them out or choose another path"
-                )
+            refuse_foreign(out, out / "capture.toml", "synth")
     except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)

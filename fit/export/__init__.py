@@ -9,7 +9,7 @@ import contextlib
 from collections.abc import Iterator
 from pathlib import Path
 
-from captures.files import atomic_path, foreign_entries
+from captures.files import atomic_path, refuse_foreign
 from captures.files import check_output as check_path
 
 from ..errors import ConfigError
@@ -45,14 +45,7 @@ def check_output(out: Path, force: bool, inputs=()) -> None:
             f"{' / '.join(MAIN_FILES)}); --force replaces only an earlier export: choose "
             "another path"
         )
-    foreign = foreign_entries(out, main)
-    if foreign:
-        shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
-        raise ConfigError(
-            f"--out {out}: also holds {shown}, which the earlier export did not write (its "
-            f"{main.name} names no such file); --force replaces the whole folder: move them out "
-            "or choose another path"
-        )
+    refuse_foreign(out, main, "the earlier export")
 
 
 def inputs_of(preset: Preset) -> list[Path]:
