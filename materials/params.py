@@ -18,6 +18,11 @@ Kind = Literal["float", "rgb", "texture"]
 
 #: A fit that starts at a bound starts this share of the range inside it (DESIGN.md).
 BOUND_MARGIN = 1e-3
+#: `from_unconstrained` clips the solver's coordinate to +-this: beyond it a float32 sigmoid is
+#: at its bound anyway, and `exp(-u)` overflowing made its derivative inf / inf (NaN) where a
+#: diverged fit had walked (u = -100: every derivative of the render NaN, the fit's
+#: uncertainty lost).
+MAX_COORDINATE = 80.0
 
 
 @dataclass(frozen=True)
@@ -86,10 +91,11 @@ class ParamSpec:
         """Inverse of `to_unconstrained`."""
         if self.transform == "identity":
             return xp.asarray(u)
+        u = xp.clip(xp.asarray(u), -MAX_COORDINATE, MAX_COORDINATE)
         if self.transform == "log_sigmoid":
             low, high = np.log(self.lower), np.log(self.upper)
-            return xp.exp(low + (high - low) / (1.0 + xp.exp(-xp.asarray(u))))
-        return self.lower + (self.upper - self.lower) / (1.0 + xp.exp(-xp.asarray(u)))
+            return xp.exp(low + (high - low) / (1.0 + xp.exp(-u)))
+        return self.lower + (self.upper - self.lower) / (1.0 + xp.exp(-u))
 
 
 def spec_table(*specs: ParamSpec) -> dict[str, ParamSpec]:

@@ -224,8 +224,12 @@ def uncertainty(
         cov[np.diag_indices_from(cov)] += np.asarray(extra_variance, np.float64)
     cov[undetermined, :] = cov[:, undetermined] = 0.0
     cov = dxdu @ cov @ dxdu.T
-    # a value that depends on an undetermined coordinate is undetermined
-    unknown = np.any(dxdu[:, undetermined] != 0, axis=1)
+    # a value that depends on an undetermined coordinate is undetermined: each material value on
+    # its own coordinate even where the transform's derivative is zero (a value at its bound:
+    # its sd came out 0 from the zero derivative)
+    depends = dxdu != 0
+    depends[:n, :n] |= np.eye(n, dtype=bool)
+    unknown = np.any(depends[:, undetermined], axis=1)
     cov[unknown, :] = cov[:, unknown] = 0.0
     cov[unknown, unknown] = np.inf
     std_flat = np.sqrt(np.clip(np.diag(cov), 0, None))

@@ -1019,3 +1019,23 @@ def test_an_undetermined_direction_gets_more_samples_before_it_is_reported(probl
     more, _, _ = uncertainty(problem, u, spp=128, seed=5)
     assert len(calls) == 4 and len(set(calls)) == 4
     assert np.isfinite(more["glaze.roughness"]) and more["glaze.roughness"] > 0
+
+
+def test_a_value_pinned_at_its_bound_is_undetermined_not_certain(problem):
+    """A diverged fit's coordinates far past the transforms' range (alpha's at +100: at its upper
+    bound, ior's at -100: at its lower): their renders' derivatives in the solver's space are
+    zero, so both are undetermined, reported infinite; alpha's came out 0 (its transform's
+    derivative zero), and ior's derivative NaN (`exp(100)` overflowing) spoiled every row, the
+    pigment's too. The transforms' derivatives stay finite there."""
+    from fit.material import to_physical
+
+    u = np.asarray(problem.unconstrained(TRUTH), np.float32)
+    u[3:5] = 100.0, -100.0
+    slopes = jax.jacfwd(lambda v: to_physical(problem.free, v, jnp))(jnp.asarray(u))
+    assert np.all(np.isfinite(np.asarray(slopes)))
+    values = problem.values(u)
+    assert values["glaze.roughness"] == 1.0 and values["glaze.ior"] == pytest.approx(1.01)
+    std, _, flagged = uncertainty(problem, u, spp=32, seed=1)
+    assert std["glaze.roughness"] == np.inf and std["glaze.ior"] == np.inf
+    assert {"glaze.roughness", "glaze.ior"} <= set(flagged)
+    assert all(0 < s < 0.05 for s in std["glaze.pigment"]), std
