@@ -20,6 +20,7 @@ reads a preset wherever a `[material]` table is accepted.
 from __future__ import annotations
 
 import datetime
+import logging
 import shutil
 import tomllib
 from dataclasses import dataclass, field
@@ -34,6 +35,8 @@ from captures.model import toml_kind
 
 from ..errors import ConfigError
 from .build import Material, build_material
+
+log = logging.getLogger(__name__)
 
 #: The preset format's version. Bump it when a preset's meaning changes, and upgrade older ones
 #: in `_upgrade` (or refuse them there with the reason).
@@ -164,7 +167,34 @@ def load_preset(path: str | Path) -> Preset:
     material = build_material(doc["material"], path)
     if material is None:
         raise ConfigError(f"{path}: every layer of [material] is disabled")
+    missing = _missing(doc["material"], material.table(), "material")
+    if missing:
+        shown = ", ".join(missing[:4]) + (
+            f" and {len(missing) - 4} more" if len(missing) > 4 else ""
+        )
+        log.warning(
+            f"{path}: {shown} not given: default values taken (a preset layerfit writes lists "
+            "every parameter and option; was it edited?)"
+        )
     return Preset(material, prov, path)
+
+
+def _missing(given, full, where: str) -> list[str]:
+    """The dotted keys of the complete table `full` (`Material.table`) that `given` leaves out;
+    a stack's layers matched by name (a disabled layer is not built, so not compared)."""
+    if not isinstance(given, dict):
+        return []
+    out = []
+    for name, value in full.items():
+        if name not in given:
+            out.append(f"{where}.{name}")
+        elif name == "layers" and isinstance(given[name], list):
+            layers = {g.get("name"): g for g in given[name] if isinstance(g, dict)}
+            for layer in value:
+                out += _missing(layers.get(layer["name"]), layer, f"{where}.{layer['name']}")
+        elif isinstance(value, dict):
+            out += _missing(given[name], value, f"{where}.{name}")
+    return out
 
 
 def _upgrade(doc: dict, path: Path) -> dict:

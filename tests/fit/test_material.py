@@ -152,6 +152,36 @@ def test_bad_presets_are_one_line_errors(tmp_path, edit, message):
     assert "\n" not in str(err.value)
 
 
+def test_a_preset_missing_keys_loads_with_a_warning_naming_them(tmp_path, caplog):
+    """A preset layerfit writes lists every parameter and option; one that leaves some out (a
+    hand edit, a line deleted) takes their defaults, and says which (it was silent)."""
+    glaze = load_render_config(ROOT / "configs" / "glazed-sphere.toml").material
+    for name, material in (("glaze", glaze), ("cup", cup())):
+        path = save_preset(material, tmp_path / f"{name}.toml")
+        with caplog.at_level("WARNING"):
+            load_preset(path)
+        assert not caplog.records, caplog.text  # complete: no word
+        text = path.read_text()
+        if name == "glaze":
+            path.write_text(text.replace("ior = ", "# ior = ", 1))
+            expected = ["material.ior"]
+        else:  # the second layer's mask's softness, and the stack's bump
+            doc = tomllib.loads(text)
+            layer = doc["material"]["layers"][1]
+            del layer["mask"]["softness"], doc["material"]["bump"]
+            import tomli_w
+
+            path.write_text(tomli_w.dumps(doc))
+            expected = ["material.bump", f"material.{layer['name']}.mask.softness"]
+        with caplog.at_level("WARNING"):
+            loaded = load_preset(path)
+        message = caplog.records[-1].getMessage()
+        assert f"{name}.toml" in message and "default" in message
+        assert all(key in message for key in expected), message
+        assert loaded.material.values().keys() == material.values().keys() - {"bump"}  # off
+        caplog.clear()
+
+
 def test_preset_with_a_missing_texture_names_it(tmp_path):
     save_preset(cup(), tmp_path / "cup.toml")
     (tmp_path / "cup.lime.mask.texture.exr").unlink()
