@@ -480,3 +480,25 @@ def test_a_peer_model_other_than_the_glaze_is_a_warning(tmp_path, shared_data):
         write_image(tmp_path / name / "view_00.exr", np.full((6, 8, 3), 0.2, np.float32))
         warnings = peer_capture(path).warnings
         assert any("is not the glaze's model" in w for w in warnings) == warned, warnings
+
+
+def test_negative_pixels_are_counted_in_a_warning(tmp_path, caplog):
+    """A linear image with values below 0: pixels with no channel above 0 get weight 0 (clipped
+    black), the others keep theirs; the warning counts both (it was silent)."""
+    path = make_capture(tmp_path)
+    image = np.full((6, 8, 3), 0.25, np.float32)
+    image[1, 1] = -0.01  # every channel: dropped
+    image[2, 2, 0] = -0.5  # one channel: kept
+    image[3, 3] = np.nan  # not counted as negative
+    write_image(tmp_path / "v0.exr", image)
+    with caplog.at_level(logging.WARNING):
+        capture = load_capture(path)
+    weight = capture.views[0].weight
+    assert weight[1, 1] == 0 and weight[2, 2] == 1 and weight[3, 3] == 0
+    assert "2 pixels have negative values (the lowest -0.5): 1 with no channel" in caplog.text
+    assert capture.warnings and "negative" in " ".join(capture.warnings)
+    caplog.clear()
+    write_image(tmp_path / "v0.exr", np.full((6, 8, 3), 0.25, np.float32))
+    with caplog.at_level(logging.WARNING):
+        load_capture(path)
+    assert "negative" not in caplog.text
