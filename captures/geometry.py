@@ -172,6 +172,42 @@ def cup_mesh(shape: CupShape | None = None) -> MeshData:
     return MeshData.concatenate(body, _handle(shape)) if shape.handle else body
 
 
+def winding_numbers(positions: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """The generalised winding number of a triangle mesh at each point (Jacobson et al. 2013):
+    the triangles' signed solid angles seen from the point over 4 pi. About +-1 inside a closed
+    mesh (the sign its winding's), 0 outside; in between near the holes of an open one."""
+    positions, faces = np.asarray(positions, np.float64), np.asarray(faces)
+    out = np.zeros(len(points))
+    for k, point in enumerate(np.asarray(points, np.float64)):
+        a, b, c = (positions[faces[:, i]] - point for i in range(3))
+        la, lb, lc = (np.linalg.norm(v, axis=1) for v in (a, b, c))
+        det = np.einsum("ij,ij->i", a, np.cross(b, c))
+        dots = (
+            la * lb * lc
+            + np.einsum("ij,ij->i", a, b) * lc
+            + np.einsum("ij,ij->i", b, c) * la
+            + np.einsum("ij,ij->i", c, a) * lb
+        )
+        out[k] = np.sum(2.0 * np.arctan2(det, dots)) / (4.0 * np.pi)
+    return out
+
+
+def obj_triangles(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(positions, triangles) of an OBJ that `check_obj` accepted: each face fanned from its first
+    corner (0-based vertex indices)."""
+    positions, triangles = [], []
+    for line in Path(path).read_text(errors="replace").splitlines():
+        words = line.split()
+        if words and words[0] == "v":
+            positions.append([float(x) for x in words[1:4]])
+        elif words and words[0] == "f":
+            corners = [int(c.split("/")[0]) - 1 for c in words[1:]]
+            triangles += [
+                (corners[0], corners[i], corners[i + 1]) for i in range(1, len(corners) - 1)
+            ]
+    return np.asarray(positions, np.float64), np.asarray(triangles, np.int64).reshape(-1, 3)
+
+
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 #: How many numbers each OBJ vertex record takes: positions 3 (4 with a weight, 6 or 7 with a
 #: colour, as some exporters write), texture coordinates 1 to 3, normals 3.

@@ -171,6 +171,31 @@ def bounding_sphere(geometry: Geometry) -> tuple[np.ndarray, float]:
     return (lo + hi) / 2, float(np.linalg.norm(hi - lo) / 2)
 
 
+def inside(geometry: Geometry, points: np.ndarray) -> np.ndarray:
+    """Whether each point lies inside the object: a mesh's winding number above 3/4 in magnitude
+    (about 1 inside a closed mesh whichever way it is wound; an open sheet, such as a normal
+    map's height field, stays below 1/2 wherever the point is)."""
+    from .geometry import cup_mesh, obj_triangles, winding_numbers
+
+    points = np.atleast_2d(np.asarray(points, float))
+    if isinstance(geometry, Sphere):
+        distance = np.linalg.norm(points - np.asarray(geometry.center, float), axis=1)
+        return distance < geometry.radius
+    center, radius = bounding_sphere(geometry)
+    near = np.linalg.norm(points - center, axis=1) < radius  # the rest are outside: no mesh read
+    out = np.zeros(len(points), bool)
+    if near.any():
+        if isinstance(geometry, Cup):
+            mesh = cup_mesh(geometry.shape)
+            positions, faces = mesh.positions, mesh.faces
+        elif isinstance(geometry, MeshArrays):
+            positions, faces = geometry.data.positions, geometry.data.faces
+        else:
+            positions, faces = obj_triangles(geometry.path)
+        out[near] = np.abs(winding_numbers(positions, faces, points[near])) > 0.75
+    return out
+
+
 def sees(camera: Camera, center: np.ndarray, radius: float) -> bool:
     """Whether any of the sphere (center, radius) falls inside the camera's view."""
     origin, forward = np.asarray(camera.origin, float), np.subtract(camera.target, camera.origin)

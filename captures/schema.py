@@ -67,6 +67,7 @@ from .scene import (
     Scene,
     Sphere,
     bounding_sphere,
+    inside,
 )
 
 log = logging.getLogger(__name__)
@@ -521,6 +522,14 @@ def parse_scene(data: dict, file: Path) -> Scene:
             "its surface would render torn; move the scene to the origin (subtract the centre "
             "from the mesh's vertices, the cameras' origins and targets and the lights' "
             "positions)"
+        )
+    origins = np.array([camera.origin for camera in scene.cameras], float)
+    for i in np.flatnonzero(inside(scene.geometry, origins)):
+        raise CaptureError(
+            f"{file}: scene.cameras[{i}].origin {list(scene.cameras[i].origin)} is inside the "
+            f"object (centre {np.round(center, 3).tolist()}, radius {radius:.3g}): it would "
+            "see the object's inside; move the camera out (check the units and the axes: a "
+            "mesh in millimetres with cameras in metres, or a swapped axis, puts it there)"
         )
     return scene
 

@@ -478,3 +478,52 @@ def test_a_toml_saved_with_a_byte_order_mark_reads(tmp_path):
 
     (tmp_path / "s.toml").write_bytes(b"\xef\xbb\xbf" + b'[scene]\ngeometry = "sphere"\n')
     assert load_toml(tmp_path / "s.toml") == {"scene": {"geometry": "sphere"}}
+
+
+@pytest.mark.parametrize("flip", [(), tuple(range(6))])
+@pytest.mark.parametrize(
+    "geometry, origin, refused",
+    [
+        ("sphere", [0, 0.5, 0], True),
+        ("sphere", [0, -3, 0], False),
+        ("cube.obj", [0.5, 0.5, 0.2], True),  # inside the cube, whichever way it is wound
+        ("cube.obj", [0, -1.2, 0], False),  # inside its bounding sphere, outside the cube
+        ("cup", [0.0, 0.0, 0.05], False),  # in the cup's hollow: outside its wall
+        ("cup", "wall", True),
+        ("cup", [0.0, -0.6, 0.05], False),
+    ],
+)
+def test_a_camera_inside_the_object_is_refused(tmp_path, geometry, origin, refused, flip):
+    """A camera whose origin is inside the object sees its inside (units or axes mixed up): refused
+    by name (rendered its back faces without a word). Outside it, however close, it is kept."""
+    if geometry == "cube.obj":
+        cube_obj(tmp_path / "cube.obj", flip=flip)
+    elif flip:
+        return
+    if origin == "wall":  # between the cup's outer and inner wall, halfway up
+        outer = cup_mesh(CupShape()).positions[:, 0].max()
+        origin = [float(outer) - 0.002, 0.0, 0.05]
+    table = scene_table(geometry=geometry)
+    table["cameras"][0].update(origin=origin, target=[0.0, 3.0, 0.05])
+    if not refused:
+        parse_scene(table, tmp_path / "s.toml")
+        return
+    with pytest.raises(CaptureError, match=r"s.toml: scene.cameras\[0\].origin .* is inside the"):
+        parse_scene(table, tmp_path / "s.toml")
+
+
+def test_winding_numbers_of_open_and_closed_meshes():
+    """About 1 inside a closed mesh (-1 wound inward), 0 outside; an open sheet below 1/2 from
+    anywhere, so a camera over a normal map's height field is never taken as inside."""
+    from captures.geometry import winding_numbers
+
+    corners = np.array([(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+    triangles = np.array([(f[0], f[i], f[i + 1]) for f in CUBE_FACES for i in (1, 2)]) - 1
+    points = np.array([[0, 0, 0], [0.9, -0.9, 0.9], [3, 0, 0], [0, 1.01, 0]])
+    np.testing.assert_allclose(winding_numbers(corners, triangles, points), [1, 1, 0, 0], atol=1e-9)
+    np.testing.assert_allclose(
+        winding_numbers(corners, triangles[:, ::-1], points), [-1, -1, 0, 0], atol=1e-9
+    )
+    sheet = np.array([[-50, -50, 0], [50, -50, 0], [50, 50, 0], [-50, 50, 0]], float)
+    near = winding_numbers(sheet, np.array([[0, 1, 2], [0, 2, 3]]), [[0, 0, 1e-3], [0, 0, -1]])
+    assert np.all(np.abs(near) < 0.5) and abs(near[0]) > 0.49
