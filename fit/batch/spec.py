@@ -117,7 +117,23 @@ def load_batch(path: str | Path) -> Batch:
                 names[name] = config
                 jobs.append(Job(name, config, capture, seed, out / name))
     _check_out(path, spec, out, set(names))
+    _check_configs(path, spec)
     return Batch(path, spec, jobs)
+
+
+def _check_configs(path: Path, spec: BatchSpec) -> None:
+    """Each config read as its fits will read it (with the first of the spec's captures), so a
+    mistake in one (a phase's spp over the limit, an unknown key) stops the batch before Ray
+    starts, by name (it was each fit's failure, seen in the index after the batch)."""
+    from captures.errors import InputError
+
+    from ..config import load_fit_config
+
+    for i, config in enumerate(spec.configs):
+        try:
+            load_fit_config(config, spec.captures[0] if spec.captures else None)
+        except InputError as err:
+            raise ConfigError(f"{path}: configs[{i}]: {err}") from None
 
 
 #: What a batch folder holds besides its run folders.

@@ -74,7 +74,7 @@ class FitSettings(StrictModel):
     """How a pixel's difference counts: l2, or robust huber / cauchy (biased under noise)."""
     loss_scale: PositiveFloat | None = None
     """Robust losses: differences beyond this count less (default: 0.1 x the photos' mean)."""
-    uncertainty_spp: PositiveInt = 64
+    uncertainty_spp: Annotated[PositiveInt, Field(le=MAX_SPP)] = 64
     """Samples per pixel of the final Jacobian render that gives the uncertainty."""
     downscale: PositiveInt = 1
     """Area-average the photos by this factor before anything (the cameras follow)."""

@@ -3,7 +3,7 @@ iterates of the phase's tail averaged."""
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 import jax
 import jax.numpy as jnp
@@ -12,6 +12,7 @@ from pydantic import Field, PositiveFloat, PositiveInt
 
 from captures.errors import InputError
 
+from ..limits import MAX_SPP
 from ..material import to_physical
 from .adam import averaged_result
 from .base import AbstractSolver, Options, Result
@@ -22,10 +23,10 @@ from .uncertainty import CROSS_SEED_OFFSET, MAX_UNCERTAINTY_PARAMS, linear_model
 class GNOptions(Options):
     eta: float = Field(0.5, gt=0.0, le=1.0)
     """Fraction of the Gauss-Newton step taken (1: the full step to the linearised optimum)."""
-    jacobian_spp: PositiveInt = 16
+    jacobian_spp: Annotated[PositiveInt, Field(le=MAX_SPP)] = 16
     """Samples per pixel of the curvature's Jacobian renders: two of half as many each, with
     their own seeds (`_curvature` discounts their noise from their product)."""
-    primal_spp: PositiveInt | Literal["auto"] | None = None
+    primal_spp: Annotated[PositiveInt, Field(le=MAX_SPP)] | Literal["auto"] | None = None
     """Samples per pixel of each step's image (the residual), its reverse pass staying at the
     phase's `spp` (absent: `spp`). `"auto"` decides at the phase's start from two renders of the
     image (`noise_ratio`). Where the render's own noise is at least `AUTO_RATIO` times the rest

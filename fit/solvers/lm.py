@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from pydantic import PositiveInt
+from pydantic import Field, PositiveInt
 
+from ..limits import MAX_SPP
 from .base import AbstractSolver, Options, Result, optimistix_result
 from .problem import jax_seed, residuals
 
 
 class LMOptions(Options):
-    jacobian_spp: PositiveInt | None = None
+    jacobian_spp: Annotated[PositiveInt, Field(le=MAX_SPP)] | None = None
     """Render the Jacobian decorrelated at this spp (absent: the residual's own seed and spp)."""
     rtol: float = 1e-4
     """Relative tolerance of convergence."""

@@ -6,11 +6,13 @@ from __future__ import annotations
 import fnmatch
 import time
 from collections.abc import Callable
+from typing import Annotated
 
 import numpy as np
 from pydantic import (
     BaseModel,
     ConfigDict,
+    Field,
     PositiveInt,
     PrivateAttr,
     ValidationError,
@@ -20,6 +22,7 @@ from pydantic import (
 from captures.errors import InputError
 from captures.model import FieldError
 
+from ..limits import MAX_SPP
 from .base import Options, Outcome, PhaseReport, Result
 from .checkpoint import Checkpoint
 from .problem import Problem
@@ -38,8 +41,8 @@ class Phase(BaseModel):
     """The solver: adam | gn | lm | bfgs (`fit/solvers/registry.py`)."""
     steps: PositiveInt
     """Steps (Adam) or the most steps (LM, BFGS)."""
-    spp: PositiveInt
-    """Samples per pixel of each render."""
+    spp: Annotated[PositiveInt, Field(le=MAX_SPP)]
+    """Samples per pixel of each render (at most 2^20: `fit.limits.MAX_SPP`)."""
     downscale: PositiveInt = 1
     """This phase's resolution: the photos area-averaged by this factor, the cameras follow."""
     _options: Options = PrivateAttr()

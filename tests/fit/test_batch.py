@@ -154,7 +154,14 @@ def test_a_bad_spec_is_one_line(tmp_path):
         ('configs = ["a/fit.toml"]\nseeds = [0, 0]\n', "seeds: 0 is listed twice"),
         ('configs = ["a/fit.toml"]\nseeds = [5000000000]\n', "seeds[0]"),
         (TINY, "is a fit config, not a batch spec"),
+        # a config's own mistakes, before Ray starts (each fit failed in the index after it)
+        ('configs = ["c/fit.toml"]\n', "batch.toml: configs[0]: "),
+        ('configs = ["c/fit.toml"]\n', "c/fit.toml: fit.phases[0].spp"),
+        ('configs = ["a/fit.toml"]\n', "a/fit.toml: capture = 'cap' does not exist"),
     ):
+        if "c/fit.toml" in text and not (tmp_path / "c").exists():
+            (tmp_path / "c" / "cap").mkdir(parents=True)
+            (tmp_path / "c" / "fit.toml").write_text(TINY.replace("spp = 2", "spp = 9999999"))
         spec.write_text(text)
         with pytest.raises(InputError, match=re.escape(message)) as err:
             load_batch(spec)
@@ -311,7 +318,7 @@ def test_a_batch_folder_keeps_a_users_files_and_other_batches(tmp_path):
     own index.html too) or another spec's batch is refused, naming the spec and `out`."""
     from captures.errors import InputError
 
-    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "cap").mkdir(parents=True)
     (tmp_path / "a" / "fit.toml").write_text(TINY)
     mine = tmp_path / "mydocs"
     mine.mkdir()
@@ -335,7 +342,7 @@ def test_only_a_matching_finished_summary_skips_a_fit(tmp_path):
     config's results credited)."""
     from fit.batch.runner import finished
 
-    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "cap").mkdir(parents=True)
     (tmp_path / "a" / "fit.toml").write_text(TINY)
     (tmp_path / "a" / "other.toml").write_text(TINY)
     spec = tmp_path / "batch.toml"
