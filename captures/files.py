@@ -78,6 +78,15 @@ def check_output(
     `suffixes`, or a folder where nothing can be created. Returns `path`."""
     path = Path(path)
     resolved = path.resolve()
+    try:
+        str(resolved).encode("utf-8")
+    except UnicodeEncodeError:  # bytes that are not UTF-8 in a name (the image and JSON writers
+        # and the HTML report take text: an internal error after the work)
+        shown = os.fsencode(path).decode("utf-8", "backslashreplace")
+        raise InputError(
+            f"{option} {shown}: the path is not UTF-8 text (its bytes shown escaped); give a "
+            "path of UTF-8 text"
+        ) from None
     if suffixes and path.suffix.lower() not in suffixes:
         raise InputError(
             f"{option} {path}: unsupported file type {path.suffix or '(none)'!r}; "

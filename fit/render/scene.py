@@ -174,6 +174,52 @@ def geometry_dict(scene: Scene, bsdf: mi.BSDF, emitter: dict | None = None) -> d
     return out
 
 
+#: `back_faces` traces at most this many pixel centres a side of each view (spread over it).
+BACK_FACE_SIDE = 256
+#: The share of a view's object pixels seen from behind above which `back_face_warnings` warns
+#: (a closed mesh's primary rays meet front faces only; a grazing pixel can slip).
+BACK_FACE_SHARE = 0.005
+
+
+def back_faces(scene: Scene) -> list[tuple[int, int]]:
+    """Per camera: (object pixels, pixels whose ray first meets a face from behind), pixel
+    centres traced through a bare scene of the object (lights left out). The materials are
+    one-sided: such pixels render black (an open mesh seen from inside, a mesh wound inside
+    out). Pixels on a grid of at most `BACK_FACE_SIDE` a side."""
+    bare = geometry_dict(scene, mi.load_dict({"type": "diffuse"}))
+    out = []
+    for camera in scene.cameras:
+        loaded = load_scene({"type": "scene", "sensor": sensor_dict(camera, 1), "object": bare})
+        nx, ny = min(camera.width, BACK_FACE_SIDE), min(camera.height, BACK_FACE_SIDE)
+        x, y = np.meshgrid((np.arange(nx) + 0.5) / nx, (np.arange(ny) + 0.5) / ny)
+        ray, _ = loaded.sensors()[0].sample_ray(
+            0.0, 0.5, mi.Point2f(x.ravel(), y.ravel()), mi.Point2f(0.5, 0.5)
+        )
+        si = loaded.ray_intersect(ray)
+        hit = np.asarray(si.is_valid())
+        behind = hit & (_dot(si.n, ray.d) > 0)
+        out.append((int(hit.sum()), int(behind.sum())))
+    return out
+
+
+def _dot(a, b) -> np.ndarray:
+    return np.asarray(a.x * b.x + a.y * b.y + a.z * b.z)
+
+
+def back_face_warnings(scene: Scene, names: list[str], where: str) -> list[str]:
+    """One line per view that sees more than `BACK_FACE_SHARE` of the object from behind."""
+    out = []
+    for name, (hits, behind) in zip(names, back_faces(scene), strict=True):
+        if hits and behind > max(2, BACK_FACE_SHARE * hits):
+            out.append(
+                f"{where}: view {name}: {100 * behind / hits:.0f} % of the object's pixels see "
+                "its faces from behind, which render black (the materials are one-sided): the "
+                "mesh is open there (a wall without thickness: give it thickness, e.g. Blender's "
+                "Solidify) or wound inside out (flip its normals)"
+            )
+    return out
+
+
 #: Mitsuba's envmap has its top row towards +y; layerfit's world is z-up (cameras' `up`, the cup
 #: stands on z): a quarter turn about x puts an equirectangular map's top (its sky) at +z and its
 #: centre column towards -y (where the default cameras stand, facing +y). Without it a sky lit

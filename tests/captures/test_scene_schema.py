@@ -456,6 +456,21 @@ def test_an_image_of_other_channels_is_refused_by_name(tmp_path, names):
         parse_scene(table, tmp_path / "s.toml")
 
 
+def test_an_output_path_that_is_not_utf8_is_refused_by_name(tmp_path):
+    """A name whose bytes are not UTF-8 (Python holds them escaped) is refused before any work,
+    its bytes shown escaped: the image and JSON writers and the report take text (an internal
+    error once the work was done)."""
+    import os
+
+    from captures.errors import InputError
+    from captures.files import check_output
+
+    bad = Path(os.fsdecode(os.fsencode(tmp_path) + b"/out\xff.png"))
+    with pytest.raises(InputError, match=r"--out .*out\\xff\.png: the path is not UTF-8"):
+        check_output(bad, "--out")
+    assert check_output(tmp_path / "out-\u00e9.png", "--out").name == "out-\u00e9.png"
+
+
 def test_an_output_folder_names_only_whole_files_as_its_own(tmp_path):
     """`--force` replaces a folder whole: only files its main file names, as whole names, are
     the tool's (a `data.exr` reference does not make a user's `a.exr` the export's)."""

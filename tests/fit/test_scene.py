@@ -312,3 +312,46 @@ def test_face_normals_render_a_shared_vertex_box_as_its_faces(tmp_path):
     flat = np.abs(image({"type": "obj", "file": "shared.obj", "face_normals": True}) - reference)
     assert rounded > 0.05 * reference.mean()
     assert flat.mean() < 0.01 * rounded
+
+
+def open_cylinder(path: Path, inward: bool = False) -> Path:
+    """A tube of radius 1 and height 2 standing on z = 0, without caps (normals outward)."""
+    n, lines = 48, []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        lines += [f"v {np.cos(a)} {np.sin(a)} 0", f"v {np.cos(a)} {np.sin(a)} 2"]
+    for i in range(n):
+        a, b = 2 * i + 1, 2 * ((i + 1) % n) + 1
+        faces = [(a, b, b + 1), (a, b + 1, a + 1)]
+        lines += [f"f {' '.join(map(str, f[::-1] if inward else f))}" for f in faces]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize(
+    "geometry, origin, seen_from_behind",
+    [
+        ("sphere", [0, -4, 1], False),
+        ("cup", [0, -0.5, 0.4], False),  # looking into the cup: its inside has thickness
+        ("tube.obj", [0, -5, 1], False),  # from the side: its outside only
+        ("tube.obj", [0, -3, 5], True),  # from above: its inside, the backs of its faces
+        ("inward.obj", [0, -5, 1], True),  # wound inside out
+    ],
+)
+def test_faces_seen_from_behind_are_warned(tmp_path, geometry, origin, seen_from_behind):
+    """The materials are one-sided: a view that sees faces from behind (an open mesh from its
+    inside, a mesh wound inside out) renders them black; the fit warns, naming the view."""
+    from fit.render.scene import back_face_warnings
+
+    open_cylinder(tmp_path / "tube.obj")
+    open_cylinder(tmp_path / "inward.obj", inward=True)
+    target = [0, 0, 0.05] if geometry == "cup" else [0, 0, 1]
+    camera = {"origin": origin, "target": target, "fov_x_deg": 40, "width": 64, "height": 48}
+    light = {"center": [2, -2, 4], "target": [0, 0, 0], "size": [0.5, 0.2], "power": 10.0}
+    scene = parse_scene(
+        {"geometry": geometry, "cameras": [camera], "lights": [light]}, tmp_path / "s.toml"
+    )
+    warnings = back_face_warnings(scene, ["v0"], "cap")
+    assert bool(warnings) == seen_from_behind, warnings
+    if seen_from_behind:
+        assert warnings[0].startswith("cap: view v0: ") and "from behind" in warnings[0]
