@@ -10,7 +10,7 @@ import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from .errors import InputError
+from .errors import InputError, listing
 
 
 def _umask() -> int:
@@ -167,7 +167,7 @@ def refuse_foreign(folder: str | Path, main: str | Path, tool: str) -> None:
     `tool`'s earlier output did not write there (`foreign_entries`)."""
     foreign = foreign_entries(folder, main)
     if foreign:
-        shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        shown = listing(foreign)
         raise InputError(
             f"--out {folder}: also holds {shown}, which {tool} did not write (its "
             f"{Path(main).name} names no such file); --force replaces the whole folder: move "

@@ -11,6 +11,7 @@ from typing import Annotated
 
 from pydantic import Field
 
+from captures.errors import listing
 from captures.files import check_output
 from captures.model import ExistingPath, PositiveInt, StrictModel, expect_kind, parse_model
 
@@ -165,7 +166,7 @@ def _check_out(path: Path, spec: BatchSpec, out: Path, runs: set[str]) -> None:
         and not (p.is_dir() and (p.name in runs or _is_run(p)))
     )
     if foreign:
-        shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        shown = listing(foreign)
         raise ConfigError(
             f"{path}: out = {str(spec.out)!r} holds files that are not this batch's ({shown}); "
             "give the batch a new or its own out folder"

@@ -273,7 +273,8 @@ def prepare(cfg: FitConfig, holdout: int | None = None) -> Prepared:
     from ..render.scene import back_face_warnings  # Mitsuba's: its variant is set by now
 
     where = capture.path or cfg.capture
-    for message in back_face_warnings(capture.scene, [v.name for v in capture.views], where):
+    views = [(v.name, v.camera) for v in capture.views]
+    for message in back_face_warnings(capture.scene, views, where):
         log.warning(message)
         capture.warnings.append(message)  # in the summary and the report too
     problem = Problem(fitted, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)

@@ -9,6 +9,7 @@ import contextlib
 from collections.abc import Iterator
 from pathlib import Path
 
+from captures.errors import listing
 from captures.files import atomic_path, refuse_foreign
 from captures.files import check_output as check_path
 
@@ -39,7 +40,7 @@ def check_output(out: Path, force: bool, inputs=()) -> None:
     main = next((out / name for name in MAIN_FILES if (out / name).is_file()), None)
     if main is None:
         names = sorted(p.name for p in out.iterdir())
-        shown = ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
+        shown = listing(names)
         raise ConfigError(
             f"--out {out}: is not a layerfit export (it holds {shown}, no "
             f"{' / '.join(MAIN_FILES)}); --force replaces only an earlier export: choose "

@@ -368,13 +368,14 @@ def material_dict(table: dict, file: Path | str = "<material>", where: str = "ma
 
 def check_uvs(scene, material: Material) -> None:
     """Refuse a mesh without texture coordinates under a material that needs them."""
+    from captures.errors import listing
     from captures.scene import ObjFile
 
     geometry = scene.geometry
     if isinstance(geometry, ObjFile) and not geometry.uvs:
         needs = material.needs_uvs()
         if needs:
-            shown = ", ".join(needs[:3]) + (", ..." if len(needs) > 3 else "")
+            shown = listing(needs)
             raise ConfigError(
                 f"{geometry.path}: the OBJ has faces without texture coordinates, and the "
                 f"material looks up {shown} in UV space; unwrap the mesh (e.g. Blender: UV > "

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
+from captures.errors import listing
 from captures.files import atomic_path, write_text
 from captures.model import toml_kind
 
@@ -169,9 +170,7 @@ def load_preset(path: str | Path) -> Preset:
         raise ConfigError(f"{path}: every layer of [material] is disabled")
     missing = _missing(doc["material"], material.table(), "material")
     if missing:
-        shown = ", ".join(missing[:4]) + (
-            f" and {len(missing) - 4} more" if len(missing) > 4 else ""
-        )
+        shown = listing(missing, 4)
         log.warning(
             f"{path}: {shown} not given: default values taken (a preset layerfit writes lists "
             "every parameter and option; was it edited?)"

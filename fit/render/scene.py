@@ -181,35 +181,32 @@ BACK_FACE_SIDE = 256
 BACK_FACE_SHARE = 0.005
 
 
-def back_faces(scene: Scene) -> list[tuple[int, int]]:
-    """Per camera: (object pixels, pixels whose ray first meets a face from behind), pixel
+def back_faces(scene: Scene, camera: Camera) -> tuple[int, int]:
+    """(object pixels, pixels whose ray first meets a face from behind) of `camera`, its pixel
     centres traced through a bare scene of the object (lights left out). The materials are
     one-sided: such pixels render black (an open mesh seen from inside, a mesh wound inside
     out). Pixels on a grid of at most `BACK_FACE_SIDE` a side."""
     bare = geometry_dict(scene, mi.load_dict({"type": "diffuse"}))
-    out = []
-    for camera in scene.cameras:
-        loaded = load_scene({"type": "scene", "sensor": sensor_dict(camera, 1), "object": bare})
-        nx, ny = min(camera.width, BACK_FACE_SIDE), min(camera.height, BACK_FACE_SIDE)
-        x, y = np.meshgrid((np.arange(nx) + 0.5) / nx, (np.arange(ny) + 0.5) / ny)
-        ray, _ = loaded.sensors()[0].sample_ray(
-            0.0, 0.5, mi.Point2f(x.ravel(), y.ravel()), mi.Point2f(0.5, 0.5)
-        )
-        si = loaded.ray_intersect(ray)
-        hit = np.asarray(si.is_valid())
-        behind = hit & (_dot(si.n, ray.d) > 0)
-        out.append((int(hit.sum()), int(behind.sum())))
-    return out
+    loaded = load_scene({"type": "scene", "sensor": sensor_dict(camera, 1), "object": bare})
+    nx, ny = min(camera.width, BACK_FACE_SIDE), min(camera.height, BACK_FACE_SIDE)
+    x, y = np.meshgrid((np.arange(nx) + 0.5) / nx, (np.arange(ny) + 0.5) / ny)
+    ray, _ = loaded.sensors()[0].sample_ray(
+        0.0, 0.5, mi.Point2f(x.ravel(), y.ravel()), mi.Point2f(0.5, 0.5)
+    )
+    si = loaded.ray_intersect(ray)
+    hit = np.asarray(si.is_valid())
+    facing = np.asarray(si.n.x * ray.d.x + si.n.y * ray.d.y + si.n.z * ray.d.z)
+    return int(hit.sum()), int((hit & (facing > 0)).sum())
 
 
-def _dot(a, b) -> np.ndarray:
-    return np.asarray(a.x * b.x + a.y * b.y + a.z * b.z)
-
-
-def back_face_warnings(scene: Scene, names: list[str], where: str) -> list[str]:
-    """One line per view that sees more than `BACK_FACE_SHARE` of the object from behind."""
-    out = []
-    for name, (hits, behind) in zip(names, back_faces(scene), strict=True):
+def back_face_warnings(scene: Scene, views: list[tuple[str, Camera]], where: str) -> list[str]:
+    """One line per view (name, camera) that sees more than `BACK_FACE_SHARE` of the object
+    from behind (views sharing a camera, as photometric stereo's, traced once)."""
+    out, traced = [], {}
+    for name, camera in views:
+        if camera not in traced:
+            traced[camera] = back_faces(scene, camera)
+        hits, behind = traced[camera]
         if hits and behind > max(2, BACK_FACE_SHARE * hits):
             out.append(
                 f"{where}: view {name}: {100 * behind / hits:.0f} % of the object's pixels see "

@@ -351,7 +351,7 @@ def test_faces_seen_from_behind_are_warned(tmp_path, geometry, origin, seen_from
     scene = parse_scene(
         {"geometry": geometry, "cameras": [camera], "lights": [light]}, tmp_path / "s.toml"
     )
-    warnings = back_face_warnings(scene, ["v0"], "cap")
+    warnings = back_face_warnings(scene, [("v0", scene.cameras[0])], "cap")
     assert bool(warnings) == seen_from_behind, warnings
     if seen_from_behind:
         assert warnings[0].startswith("cap: view v0: ") and "from behind" in warnings[0]
