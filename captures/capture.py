@@ -258,14 +258,16 @@ def load_capture(path: str | Path) -> Capture:
         if not np.all(np.isfinite(image)):
             bad = int(np.sum(~np.all(np.isfinite(image), axis=-1)))
             warnings.append(f"{spec.image}: {bad} NaN/Inf pixels get weight 0")
-        negative = np.any(image < 0, axis=-1)  # NaN compares false
-        if negative.any():
-            dropped = int(np.sum(np.all(np.where(np.isfinite(image), image, 1.0) <= 0, axis=-1)))
+        finite = np.isfinite(image)
+        negative = np.any(finite & (image < 0), axis=-1)
+        if negative.any():  # dropped: negative, every channel finite and none above 0
+            dropped = int(np.sum(negative & np.all(finite, -1) & np.all(image <= 0, -1)))
             warnings.append(
                 f"{spec.image}: {int(negative.sum())} pixels have negative values (the lowest "
-                f"{float(np.nanmin(image)):.3g}): {dropped} with no channel above 0 get weight 0 "
-                "as clipped black, the others are fitted as they are; a linear image with its "
-                "black level subtracted keeps noise below 0, a denoiser or resampling rings"
+                f"{float(image[finite].min()):.3g}): {dropped} of them with no channel above 0 "
+                "get weight 0 as clipped black, the others are fitted as they are; a linear "
+                "image with its black level subtracted keeps noise below 0, a denoiser or "
+                "resampling rings"
             )
         mask = None
         if spec.mask is not None:

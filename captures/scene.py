@@ -172,27 +172,38 @@ def bounding_sphere(geometry: Geometry) -> tuple[np.ndarray, float]:
 
 
 def inside(geometry: Geometry, points: np.ndarray) -> np.ndarray:
-    """Whether each point lies inside the object: a mesh's winding number above 3/4 in magnitude
-    (about 1 inside a closed mesh whichever way it is wound; an open sheet, such as a normal
-    map's height field, stays below 1/2 wherever the point is)."""
-    from .geometry import cup_mesh, obj_triangles, winding_numbers
+    """Whether each point lies inside the object. A mesh: inside its box, and both its winding
+    number above 3/4 in magnitude (about 1 inside a closed mesh whichever way it is wound; an
+    open flat sheet stays below 1/2) and most of three rays crossing its faces an odd number of
+    times (faces wound against their neighbours spoil the winding number, not the count)."""
+    from .geometry import crossings, cup_mesh, obj_triangles, winding_numbers
 
     points = np.atleast_2d(np.asarray(points, float))
     if isinstance(geometry, Sphere):
         distance = np.linalg.norm(points - np.asarray(geometry.center, float), axis=1)
         return distance < geometry.radius
-    center, radius = bounding_sphere(geometry)
-    near = np.linalg.norm(points - center, axis=1) < radius  # the rest are outside: no mesh read
+    if isinstance(geometry, ObjFile) and geometry.bounds is not None:
+        lo, hi = (np.asarray(corner, float) for corner in geometry.bounds)
+    elif isinstance(geometry, MeshArrays):
+        lo, hi = geometry.data.positions.min(axis=0), geometry.data.positions.max(axis=0)
+    else:
+        center, radius = bounding_sphere(geometry)
+        lo, hi = center - radius, center + radius
+    near = np.all((points > lo) & (points < hi), axis=1)  # the rest: outside, no mesh read
     out = np.zeros(len(points), bool)
-    if near.any():
-        if isinstance(geometry, Cup):
-            mesh = cup_mesh(geometry.shape)
-            positions, faces = mesh.positions, mesh.faces
-        elif isinstance(geometry, MeshArrays):
-            positions, faces = geometry.data.positions, geometry.data.faces
-        else:
-            positions, faces = obj_triangles(geometry.path)
-        out[near] = np.abs(winding_numbers(positions, faces, points[near])) > 0.75
+    if not near.any():
+        return out
+    if isinstance(geometry, Cup):
+        mesh = cup_mesh(geometry.shape)
+        positions, faces = mesh.positions, mesh.faces
+    elif isinstance(geometry, MeshArrays):
+        positions, faces = geometry.data.positions, geometry.data.faces
+    else:
+        positions, faces = obj_triangles(geometry.path)
+    unique, index = np.unique(points[near], axis=0, return_inverse=True)
+    wound = np.abs(winding_numbers(positions, faces, unique)) > 0.75
+    odd = np.array([np.sum(crossings(positions, faces, p) % 2) >= 2 for p in unique], bool)
+    out[near] = (wound & odd)[np.ravel(index)]
     return out
 
 

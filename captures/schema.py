@@ -524,12 +524,15 @@ def parse_scene(data: dict, file: Path) -> Scene:
             "positions)"
         )
     origins = np.array([camera.origin for camera in scene.cameras], float)
-    for i in np.flatnonzero(inside(scene.geometry, origins)):
+    within = np.flatnonzero(inside(scene.geometry, origins))
+    if len(within):
+        i = within[0]
+        others = f" (and {len(within) - 1} more cameras)" if len(within) > 1 else ""
         raise CaptureError(
             f"{file}: scene.cameras[{i}].origin {list(scene.cameras[i].origin)} is inside the "
-            f"object (centre {np.round(center, 3).tolist()}, radius {radius:.3g}): it would "
-            "see the object's inside; move the camera out (check the units and the axes: a "
-            "mesh in millimetres with cameras in metres, or a swapped axis, puts it there)"
+            f"object{others} (centre {np.round(center, 3).tolist()}, radius {radius:.3g}): it "
+            "would see the object's inside; move the camera out (check the units and the axes: "
+            "a mesh in millimetres with cameras in metres, or a swapped axis, puts it there)"
         )
     return scene
 

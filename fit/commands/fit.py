@@ -270,11 +270,11 @@ def prepare(cfg: FitConfig, holdout: int | None = None) -> Prepared:
         raise InputError(f"{cfg.path}: fit.free: {err.args[0]}") from None
     check_truth(capture, free, capture.path or cfg.capture, cfg.material)
     check_uvs(capture.scene, cfg.material)
-    from ..render.scene import back_face_warnings  # Mitsuba's: its variant is set by now
+    from ..render.scene import back_face_warning  # Mitsuba's: its variant is set by now
 
-    where = capture.path or cfg.capture
     views = [(v.name, v.camera) for v in capture.views]
-    for message in back_face_warnings(capture.scene, views, where):
+    message = back_face_warning(capture.scene, views, capture.path or cfg.capture)
+    if message:
         log.warning(message)
         capture.warnings.append(message)  # in the summary and the report too
     problem = Problem(fitted, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)

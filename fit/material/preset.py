@@ -168,12 +168,17 @@ def load_preset(path: str | Path) -> Preset:
     material = build_material(doc["material"], path)
     if material is None:
         raise ConfigError(f"{path}: every layer of [material] is disabled")
-    missing = _missing(doc["material"], material.table(), "material")
+    given, full, where = doc["material"], material.table(), "material"
+    if "layers" in given and "layers" not in full:  # a stack of one built as its layer
+        name = material.layers[0][0]
+        layers = given["layers"] if isinstance(given["layers"], list) else []
+        given = next((x for x in layers if isinstance(x, dict) and x.get("name") == name), {})
+        where = f"material.{name}"
+    missing = _missing(given, full, where)
     if missing:
-        shown = listing(missing, 4)
         log.warning(
-            f"{path}: {shown} not given: default values taken (a preset layerfit writes lists "
-            "every parameter and option; was it edited?)"
+            f"{path}: {listing(missing, 4)} not given: their defaults taken (a preset lists "
+            "every parameter and option: this one was edited, or written by an older layerfit)"
         )
     return Preset(material, prov, path)
 

@@ -6,6 +6,7 @@ import mitsuba as mi
 import numpy as np
 
 from captures import Camera, Scene
+from captures.errors import listing
 from captures.geometry import MeshData, cup_mesh
 from captures.scene import (
     Cup,
@@ -176,45 +177,58 @@ def geometry_dict(scene: Scene, bsdf: mi.BSDF, emitter: dict | None = None) -> d
 
 #: `back_faces` traces at most this many pixel centres a side of each view (spread over it).
 BACK_FACE_SIDE = 256
-#: The share of a view's object pixels seen from behind above which `back_face_warnings` warns
-#: (a closed mesh's primary rays meet front faces only; a grazing pixel can slip).
+#: The share of a view's object pixels seen from behind above which `back_face_warning` warns.
 BACK_FACE_SHARE = 0.005
+#: A pixel is seen from behind where the ray meets the back of its face (by the winding) below
+#: its shading normal's horizon, or the front of a face this far below it (the cosine): normals
+#: given pointing inward. The materials are black below 0 either way, but along the silhouette
+#: of a coarse smooth mesh the interpolated normals dip below it by up to half the angle between
+#: faces (an 8-sided tube: 22 degrees, cosine -0.38), which is no fault of the mesh's.
+BACK_FACE_COSINE = -0.5
 
 
-def back_faces(scene: Scene, camera: Camera) -> tuple[int, int]:
-    """(object pixels, pixels whose ray first meets a face from behind) of `camera`, its pixel
-    centres traced through a bare scene of the object (lights left out). The materials are
-    one-sided: such pixels render black (an open mesh seen from inside, a mesh wound inside
-    out). Pixels on a grid of at most `BACK_FACE_SIDE` a side."""
+def back_faces(scene: Scene, cameras: list[Camera]) -> list[tuple[int, int]]:
+    """Per camera: (object pixels, pixels whose ray meets the surface from behind, as
+    `BACK_FACE_COSINE` says), pixel centres traced through one bare scene of the object (lights
+    left out) with every camera a sensor. The materials are one-sided: such pixels render black
+    (an open mesh seen from inside, a mesh whose normals point inward). Pixels on a grid of at
+    most `BACK_FACE_SIDE` a side."""
+    sensors = {f"sensor_{k:04d}": sensor_dict(c, 1) for k, c in enumerate(cameras)}
     bare = geometry_dict(scene, mi.load_dict({"type": "diffuse"}))
-    loaded = load_scene({"type": "scene", "sensor": sensor_dict(camera, 1), "object": bare})
-    nx, ny = min(camera.width, BACK_FACE_SIDE), min(camera.height, BACK_FACE_SIDE)
-    x, y = np.meshgrid((np.arange(nx) + 0.5) / nx, (np.arange(ny) + 0.5) / ny)
-    ray, _ = loaded.sensors()[0].sample_ray(
-        0.0, 0.5, mi.Point2f(x.ravel(), y.ravel()), mi.Point2f(0.5, 0.5)
-    )
-    si = loaded.ray_intersect(ray)
-    hit = np.asarray(si.is_valid())
-    facing = np.asarray(si.n.x * ray.d.x + si.n.y * ray.d.y + si.n.z * ray.d.z)
-    return int(hit.sum()), int((hit & (facing > 0)).sum())
+    loaded = load_scene({"type": "scene", "object": bare, **sensors})
+    out = []
+    for camera, sensor in zip(cameras, loaded.sensors(), strict=True):
+        nx, ny = min(camera.width, BACK_FACE_SIDE), min(camera.height, BACK_FACE_SIDE)
+        x, y = np.meshgrid((np.arange(nx) + 0.5) / nx, (np.arange(ny) + 0.5) / ny)
+        ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(x.ravel(), y.ravel()), mi.Point2f(0.5))
+        si = loaded.ray_intersect(ray)
+        hit = np.asarray(si.is_valid())
+        shading = np.asarray(si.wi.z)  # the cosine to the shading normal
+        back = np.asarray(si.n.x * ray.d.x + si.n.y * ray.d.y + si.n.z * ray.d.z) > 0
+        behind = hit & (((shading < 0) & back) | (shading < BACK_FACE_COSINE))
+        out.append((int(hit.sum()), int(behind.sum())))
+    return out
 
 
-def back_face_warnings(scene: Scene, views: list[tuple[str, Camera]], where: str) -> list[str]:
-    """One line per view (name, camera) that sees more than `BACK_FACE_SHARE` of the object
-    from behind (views sharing a camera, as photometric stereo's, traced once)."""
-    out, traced = [], {}
+def back_face_warning(scene: Scene, views: list[tuple[str, Camera]], where: str) -> str | None:
+    """A line naming the views (name, camera) that see more than `BACK_FACE_SHARE` of the object
+    from behind, or None (views sharing a camera, as photometric stereo's, traced once)."""
+    cameras = list(dict.fromkeys(camera for _, camera in views))
+    traced = dict(zip(cameras, back_faces(scene, cameras), strict=True))
+    shares = {}
     for name, camera in views:
-        if camera not in traced:
-            traced[camera] = back_faces(scene, camera)
         hits, behind = traced[camera]
         if hits and behind > max(2, BACK_FACE_SHARE * hits):
-            out.append(
-                f"{where}: view {name}: {100 * behind / hits:.0f} % of the object's pixels see "
-                "its faces from behind, which render black (the materials are one-sided): the "
-                "mesh is open there (a wall without thickness: give it thickness, e.g. Blender's "
-                "Solidify) or wound inside out (flip its normals)"
-            )
-    return out
+            shares[name] = behind / hits
+    if not shares:
+        return None
+    return (
+        f"{where}: {len(shares)} of {len(views)} views see the object's faces from behind, "
+        f"which render black (the materials are one-sided): up to {100 * max(shares.values()):.0f}"
+        f" % of its pixels, in {listing(list(shares))}; the mesh is open there (a wall without "
+        "thickness: give it thickness, e.g. Blender's Solidify), its normals point inward (flip "
+        "them), or the camera is inside it"
+    )
 
 
 #: Mitsuba's envmap has its top row towards +y; layerfit's world is z-up (cameras' `up`, the cup

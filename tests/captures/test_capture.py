@@ -490,12 +490,16 @@ def test_negative_pixels_are_counted_in_a_warning(tmp_path, caplog):
     image[1, 1] = -0.01  # every channel: dropped
     image[2, 2, 0] = -0.5  # one channel: kept
     image[3, 3] = np.nan  # not counted as negative
+    image[4, 4] = 0.0  # black, not negative: dropped but not counted
+    image[5, 5] = (-np.inf, 0.2, 0.2)  # not finite: the NaN/Inf warning's
     write_image(tmp_path / "v0.exr", image)
     with caplog.at_level(logging.WARNING):
         capture = load_capture(path)
     weight = capture.views[0].weight
-    assert weight[1, 1] == 0 and weight[2, 2] == 1 and weight[3, 3] == 0
-    assert "2 pixels have negative values (the lowest -0.5): 1 with no channel" in caplog.text
+    assert weight[1, 1] == 0 and weight[2, 2] == 1 and weight[3, 3] == 0 and weight[4, 4] == 0
+    assert (
+        "2 pixels have negative values (the lowest -0.5): 1 of them with no channel" in caplog.text
+    )
     assert capture.warnings and "negative" in " ".join(capture.warnings)
     caplog.clear()
     write_image(tmp_path / "v0.exr", np.full((6, 8, 3), 0.25, np.float32))

@@ -1002,7 +1002,7 @@ CASES: list[Case] = [
     (
         "fit-starts-spp-huge",  # the starts' common loss: one render at full resolution
         fit_cfg("[fit]\n", "[fit]\nstarts = 2\nstarts_spp = 100000000\n"),
-        ("fit.toml", "fit.starts_spp", "2^32"),
+        ("fit.toml", "fit.starts_spp", "1048576"),
     ),
     (
         "fit-seed-huge",  # was an OverflowError (int32) at the first step

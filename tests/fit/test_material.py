@@ -180,6 +180,17 @@ def test_a_preset_missing_keys_loads_with_a_warning_naming_them(tmp_path, caplog
         assert all(key in message for key in expected), message
         assert loaded.material.values().keys() == material.values().keys() - {"bump"}  # off
         caplog.clear()
+    # a stack with one layer left enabled, named as its type, is built as that layer (a flat
+    # table): compared as one, complete
+    doc = tomllib.loads(save_preset(cup(), tmp_path / "one.toml").read_text())
+    for layer in doc["material"]["layers"]:
+        layer["enabled"] = layer["name"] == "glaze"
+    import tomli_w
+
+    (tmp_path / "one.toml").write_text(tomli_w.dumps(doc))
+    with caplog.at_level("WARNING"):
+        one = load_preset(tmp_path / "one.toml").material
+    assert "layers" not in one.table() and not caplog.records, caplog.text
 
 
 def test_preset_with_a_missing_texture_names_it(tmp_path):

@@ -314,16 +314,36 @@ def test_face_normals_render_a_shared_vertex_box_as_its_faces(tmp_path):
     assert flat.mean() < 0.01 * rounded
 
 
-def open_cylinder(path: Path, inward: bool = False) -> Path:
-    """A tube of radius 1 and height 2 standing on z = 0, without caps (normals outward)."""
-    n, lines = 48, []
+def open_cylinder(path: Path, inward: bool = False, segments: int = 48, normals=False) -> Path:
+    """A tube of radius 1 and height 2 standing on z = 0, without caps (wound outward unless
+    `inward`; with `normals`, radial `vn` normals)."""
+    n, lines = segments, []
     for i in range(n):
         a = 2 * np.pi * i / n
         lines += [f"v {np.cos(a)} {np.sin(a)} 0", f"v {np.cos(a)} {np.sin(a)} 2"]
+        lines += [f"vn {np.cos(a)} {np.sin(a)} 0"] * 2 if normals else []
     for i in range(n):
         a, b = 2 * i + 1, 2 * ((i + 1) % n) + 1
-        faces = [(a, b, b + 1), (a, b + 1, a + 1)]
-        lines += [f"f {' '.join(map(str, f[::-1] if inward else f))}" for f in faces]
+        for face in [(a, b, b + 1), (a, b + 1, a + 1)]:
+            wound = face[::-1] if inward else face
+            lines.append("f " + " ".join(f"{k}//{k}" if normals else str(k) for k in wound))
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def closed_cube(path: Path, wound_inward: bool, normals: int) -> Path:
+    """The cube [-1, 1]^3 moved up by 1, its faces wound inward or outward, with per-face `vn`
+    normals pointing out (`normals` 1) or in (-1)."""
+    corners = [(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
+    quads = [(1, 2, 4, 3), (5, 7, 8, 6), (1, 5, 6, 2), (3, 4, 8, 7), (1, 3, 7, 5), (2, 6, 8, 4)]
+    lines = [f"v {x} {y} {z + 1}" for x, y, z in corners]
+    for k, quad in enumerate(quads, 1):
+        centre = np.mean([corners[i - 1] for i in quad], axis=0)
+        lines.append("vn " + " ".join(str(int(normals * c)) for c in np.sign(centre)))
+        p = np.array([corners[i - 1] for i in quad], float)
+        outward = np.cross(p[1] - p[0], p[2] - p[0]) @ centre > 0
+        wound = quad if outward != wound_inward else quad[::-1]
+        lines.append("f " + " ".join(f"{i}//{k}" for i in wound))
     path.write_text("\n".join(lines) + "\n")
     return path
 
@@ -335,23 +355,33 @@ def open_cylinder(path: Path, inward: bool = False) -> Path:
         ("cup", [0, -0.5, 0.4], False),  # looking into the cup: its inside has thickness
         ("tube.obj", [0, -5, 1], False),  # from the side: its outside only
         ("tube.obj", [0, -3, 5], True),  # from above: its inside, the backs of its faces
-        ("inward.obj", [0, -5, 1], True),  # wound inside out
+        ("inward.obj", [0, -5, 1], True),  # wound inside out, no normals: they point inward
+        ("cube.obj", [0, -5, 1], False),  # wound inside out, normals given outward: lit
+        ("inward-normals.obj", [0, -5, 1], True),  # wound outward, normals given inward: black
+        ("coarse.obj", [0, -5, 1], False),  # 8 segments: normals dip at the silhouette
     ],
 )
 def test_faces_seen_from_behind_are_warned(tmp_path, geometry, origin, seen_from_behind):
-    """The materials are one-sided: a view that sees faces from behind (an open mesh from its
-    inside, a mesh wound inside out) renders them black; the fit warns, naming the view."""
-    from fit.render.scene import back_face_warnings
+    """The materials are one-sided, by the shading normal: a view that sees the surface from
+    behind (an open mesh from its inside, normals pointing inward) renders it black; the fit
+    warns, naming the views. A mesh wound inside out whose `vn` normals point out renders lit,
+    and is not warned."""
+    from fit.render.scene import back_face_warning
 
     open_cylinder(tmp_path / "tube.obj")
     open_cylinder(tmp_path / "inward.obj", inward=True)
+    open_cylinder(tmp_path / "coarse.obj", segments=8, normals=True)
+    closed_cube(tmp_path / "cube.obj", wound_inward=True, normals=1)
+    closed_cube(tmp_path / "inward-normals.obj", wound_inward=False, normals=-1)
     target = [0, 0, 0.05] if geometry == "cup" else [0, 0, 1]
     camera = {"origin": origin, "target": target, "fov_x_deg": 40, "width": 64, "height": 48}
     light = {"center": [2, -2, 4], "target": [0, 0, 0], "size": [0.5, 0.2], "power": 10.0}
     scene = parse_scene(
         {"geometry": geometry, "cameras": [camera], "lights": [light]}, tmp_path / "s.toml"
     )
-    warnings = back_face_warnings(scene, [("v0", scene.cameras[0])], "cap")
-    assert bool(warnings) == seen_from_behind, warnings
+    views = [("v0", scene.cameras[0]), ("v1", scene.cameras[0])]  # sharing a camera
+    warning = back_face_warning(scene, views, "cap")
+    assert (warning is not None) == seen_from_behind, warning
     if seen_from_behind:
-        assert warnings[0].startswith("cap: view v0: ") and "from behind" in warnings[0]
+        assert warning.startswith("cap: 2 of 2 views see the object's faces from behind")
+        assert "in v0, v1;" in warning
