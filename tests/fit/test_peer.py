@@ -44,7 +44,10 @@ def glaze_at_truth(material: dict, fresnel: str) -> dict:
     }
 
 
-@pytest.mark.parametrize("fresnel, radiance_tol", [("schlick", 0.05), ("exact", 0.02)])
+@pytest.mark.parametrize(
+    "fresnel, radiance_tol",
+    [("schlick", 0.05), pytest.param("exact", 0.02, marks=pytest.mark.slow)],
+)
 def test_glaze_matches_cycles(peer, fresnel, radiance_tol):
     """Per view: total object radiance within 5 % (Schlick) / 2 % (exact Fresnel, what Cycles
     uses), and mean relative pixel error over fully covered pixels below `PIXEL_TOL` (total radiance

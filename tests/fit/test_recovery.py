@@ -77,7 +77,7 @@ def test_calibration_table_resumes_and_refuses_a_foreign_file(tmp_path, monkeypa
     assert json.loads(results.read_text())["setting"]["size"] == [16, 12]
 
 
-@pytest.mark.parametrize("shape", ["sphere", "torus"])
+@pytest.mark.parametrize("shape", ["sphere", pytest.param("torus", marks=pytest.mark.slow)])
 def test_data_limit_follows_the_targets_noise(shape):
     """The sd a case's targets allow shrinks with their noise: 16x the target's samples, a
     quarter of the sd (measured 4.1-5.0 on the sphere over seeds and Jacobian samples: the

@@ -186,6 +186,7 @@ def test_render_does_not_recompile(problem):
     )
 
 
+@pytest.mark.slow  # LM's convergence stays in the default run through the emitter scales' fit
 def test_levenberg_marquardt_recovers_the_sphere(larger):
     """LM with one seed ends at that seed's optimum: at 48x36 and 32 spp its pigment was off by
     0.022-0.056 over seeds 0-3 (the variance's gradient), at 128 spp alpha by up to 22 %; at
