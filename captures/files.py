@@ -63,6 +63,26 @@ def write_text(path: str | Path, text: str) -> Path:
     return Path(path)
 
 
+def not_utf8(path: str | Path) -> str | None:
+    """The path with its bytes escaped where its name is not UTF-8 text (a name the file system
+    holds that Python keeps escaped: the image, mesh and JSON libraries take text), else None."""
+    try:
+        str(Path(path).resolve()).encode("utf-8")
+    except UnicodeEncodeError:
+        return os.fsencode(path).decode("utf-8", "backslashreplace")
+    return None
+
+
+def require_utf8(path: str | Path, error=InputError) -> None:
+    """Raise `error` naming `path` when its name is not UTF-8 text (`not_utf8`)."""
+    shown = not_utf8(path)
+    if shown is not None:
+        raise error(
+            f"{shown}: the path is not UTF-8 text (its bytes shown escaped), which the image "
+            "and mesh readers cannot open; rename the file or folder in UTF-8"
+        )
+
+
 def check_output(
     path: str | Path,
     option: str,
@@ -78,15 +98,12 @@ def check_output(
     `suffixes`, or a folder where nothing can be created. Returns `path`."""
     path = Path(path)
     resolved = path.resolve()
-    try:
-        str(resolved).encode("utf-8")
-    except UnicodeEncodeError:  # bytes that are not UTF-8 in a name (the image and JSON writers
-        # and the HTML report take text: an internal error after the work)
-        shown = os.fsencode(path).decode("utf-8", "backslashreplace")
+    shown = not_utf8(path)  # the image and JSON writers and the report take text: an internal
+    if shown is not None:  # error after the work
         raise InputError(
             f"{option} {shown}: the path is not UTF-8 text (its bytes shown escaped); give a "
             "path of UTF-8 text"
-        ) from None
+        )
     if suffixes and path.suffix.lower() not in suffixes:
         raise InputError(
             f"{option} {path}: unsupported file type {path.suffix or '(none)'!r}; "

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import CaptureError
+from .files import require_utf8
 
 
 @dataclass(frozen=True)
@@ -294,6 +295,7 @@ def check_obj(path: str | Path, face_normals: bool = False) -> ObjCheck:
     or more corners whose vertex, texture and normal indices exist, not all of zero area. Its
     warnings (`shading_warnings`) say where the renderer's shading will not be the object's."""
     path = Path(path)
+    require_utf8(path, CaptureError)
     try:
         text = path.read_text(errors="replace")
     except FileNotFoundError:

@@ -12,7 +12,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from .errors import CaptureError
-from .files import atomic_path
+from .files import atomic_path, not_utf8, require_utf8
 
 log = logging.getLogger(__name__)
 ENCODINGS = ("linear", "srgb", "raw")
@@ -35,6 +35,7 @@ def srgb_decode(encoded: np.ndarray) -> np.ndarray:
 def read_image(path: str | Path) -> np.ndarray:
     """Pixels as float32 (H, W, C) exactly as stored (no colour decoding)."""
     path = Path(path)
+    require_utf8(path, CaptureError)
     if not path.exists():
         raise CaptureError(f"{path}: no such image file; check the path")
     if path.is_dir():
@@ -128,6 +129,7 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
     mark pixels at the top code as saturated; float files those at `HALF_MAX` or above.
     """
     path = Path(path)
+    require_utf8(path, CaptureError)
     if encoding not in ENCODINGS:
         raise CaptureError(f"{path}: encoding {encoding!r}; choose one of {', '.join(ENCODINGS)}")
     if encoding == "raw":
@@ -216,6 +218,8 @@ def image_problem(path: str | Path) -> str | None:
     folder, an unsupported type, not decodable (truncated, corrupt) or holding values that are
     not finite."""
     path = Path(path)
+    if not_utf8(path) is not None:
+        return f"'{not_utf8(path)}' is not a UTF-8 path, which the renderer cannot open; rename it"
     if path.is_dir():
         return f"'{path.name}' is a folder, not an image; give an image file"
     if not path.is_file():

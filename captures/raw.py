@@ -18,6 +18,7 @@ import numpy as np
 import rawpy
 
 from .errors import CaptureError
+from .files import require_utf8
 
 #: A RAW whose pixels are this share or more at or below black carries no picture.
 MAX_BLACK_SHARE = 0.99
@@ -74,6 +75,7 @@ def read_raw(path: str | Path) -> RawImage:
     """A RAW file's camera RGB (2x2 superpixels of its default crop), saturation and colour
     metadata, or a one-line `CaptureError`."""
     path = Path(path)
+    require_utf8(path, CaptureError)
     if not path.exists():
         raise CaptureError(f"{path}: no such RAW file")
     try:

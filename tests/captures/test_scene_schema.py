@@ -471,6 +471,28 @@ def test_an_output_path_that_is_not_utf8_is_refused_by_name(tmp_path):
     assert check_output(tmp_path / "out-\u00e9.png", "--out").name == "out-\u00e9.png"
 
 
+def test_input_files_whose_path_is_not_utf8_are_refused_by_name(tmp_path):
+    """Images, masks, RAWs and meshes under a name that is not UTF-8 are refused in one line
+    with the bytes escaped (OpenImageIO's open raised a TypeError: an internal error)."""
+    import os
+
+    from captures.geometry import check_obj
+    from captures.images import image_problem, read_image, read_linear
+    from captures.raw import read_raw
+
+    folder = Path(os.fsdecode(os.fsencode(tmp_path) + b"/caf\xe9"))
+    folder.mkdir()
+    write_image(tmp_path / "v.png", np.full((4, 4, 3), 0.5, np.float32))  # its writer: no
+    (tmp_path / "v.png").rename(folder / "v.png")
+    cube_obj(folder / "cube.obj")
+    for read in (read_image, lambda p: read_linear(p, "srgb"), read_raw):
+        with pytest.raises(CaptureError, match=r"caf\\xe9/v.png: the path is not UTF-8"):
+            read(folder / "v.png")
+    with pytest.raises(CaptureError, match=r"caf\\xe9/cube.obj: the path is not UTF-8"):
+        check_obj(folder / "cube.obj")
+    assert "not a UTF-8 path" in image_problem(folder / "v.png")
+
+
 def test_an_output_folder_names_only_whole_files_as_its_own(tmp_path):
     """`--force` replaces a folder whole: only files its main file names, as whole names, are
     the tool's (a `data.exr` reference does not make a user's `a.exr` the export's)."""
