@@ -66,10 +66,11 @@ def write_text(path: str | Path, text: str) -> Path:
 def not_utf8(path: str | Path) -> str | None:
     """The path with its bytes escaped where its name is not UTF-8 text (a name the file system
     holds that Python keeps escaped: the image, mesh and JSON libraries take text), else None."""
+    resolved = Path(path).resolve()
     try:
-        str(Path(path).resolve()).encode("utf-8")
-    except UnicodeEncodeError:
-        return os.fsencode(path).decode("utf-8", "backslashreplace")
+        str(resolved).encode("utf-8")
+    except UnicodeEncodeError:  # shown resolved: a relative name may be UTF-8, its folder not
+        return os.fsencode(resolved).decode("utf-8", "backslashreplace")
     return None
 
 

@@ -88,7 +88,7 @@ class FitSettings(StrictModel):
     start_spread: PositiveFloat = 1.5
     """Multi-start: standard deviation of the other starts around the configured one, in the
     solvers' unconstrained units (sigmoid: logits)."""
-    starts_spp: Annotated[PositiveInt, Field(le=MAX_SPP)] = 256
+    starts_spp: Annotated[PositiveInt, Field(le=MAX_SPP)] = 256  # at most 2^20, as every spp
     """Multi-start: samples per pixel of the common loss that picks the best start."""
 
 

@@ -227,7 +227,8 @@ def back_face_warning(scene: Scene, views: list[tuple[str, Camera]], where: str)
         f"which render black (the materials are one-sided): up to {100 * max(shares.values()):.0f}"
         f" % of its pixels, in {listing(list(shares))}; the mesh is open there (a wall without "
         "thickness: give it thickness, e.g. Blender's Solidify), its normals point inward (flip "
-        "them), or the camera is inside it"
+        "them) or are smoothed across sharp edges (shade flat: face_normals = true, or export "
+        "split normals), or the camera is inside it"
     )
 
 

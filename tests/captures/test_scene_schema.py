@@ -573,3 +573,32 @@ def test_winding_numbers_of_open_and_closed_meshes():
     sheet = np.array([[-50, -50, 0], [50, -50, 0], [50, 50, 0], [-50, 50, 0]], float)
     near = winding_numbers(sheet, np.array([[0, 1, 2], [0, 2, 3]]), [[0, 0, 1e-3], [0, 0, -1]])
     assert np.all(np.abs(near) < 0.5) and abs(near[0]) > 0.49
+
+
+def test_a_camera_between_two_parts_next_to_a_face_wound_wrong_is_kept(tmp_path):
+    """Two unit cubes in one OBJ, the first's +x face wound against its neighbours: a camera
+    between them, 0.01 off that face, is inside the mesh's box and its winding number is near 1
+    (the flipped face subtends nearly half the sphere), but every ray crosses the faces an even
+    number of times: kept. Inside the second cube: refused."""
+    from captures.geometry import winding_numbers
+
+    corners = [(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
+    lines = [f"v {x} {y} {z}" for x, y, z in corners]
+    lines += [f"v {x + 4} {y} {z}" for x, y, z in corners]
+    positions = np.array([[float(w) for w in line.split()[1:]] for line in lines])
+    faces = []
+    for offset in (0, 8):
+        for f in CUBE_FACES:
+            quad = [i + offset for i in f]
+            on_plus_x = all(corners[i - 1][0] == 1 for i in f)
+            faces.append(quad[::-1] if offset == 0 and on_plus_x else quad)
+    lines += ["f " + " ".join(map(str, f)) for f in faces]
+    (tmp_path / "two.obj").write_text("\n".join(lines) + "\n")
+    triangles = np.array([(f[0], f[i], f[i + 1]) for f in faces for i in (1, 2)]) - 1
+    assert abs(winding_numbers(positions, triangles, [[1.01, 0.0, 0.0]])[0]) > 0.75
+    table = scene_table(geometry="two.obj")
+    table["cameras"][0].update(origin=[1.01, 0.0, 0.0], target=[1.01, -3.0, 0.0])
+    parse_scene(table, tmp_path / "s.toml")
+    table["cameras"][0].update(origin=[4.2, 0.1, 0.1], target=[4.2, -3.0, 0.1])
+    with pytest.raises(CaptureError, match=r"scene.cameras\[0\].origin .* is inside the object"):
+        parse_scene(table, tmp_path / "s.toml")
