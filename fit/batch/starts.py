@@ -75,7 +75,7 @@ def fit_from(
 
     prepare_worker(1, variant, cache)
     began = time.perf_counter()
-    problem = prepare(cfg, holdout).problem
+    problem = prepare(cfg, holdout, trace=False).problem
     values = problem.values(u)
     start = {f.key: values[f.key] for f in problem.free}
     result = run_schedule(problem, start, cfg.phases, cfg.seed, None, cfg.uncertainty_spp)

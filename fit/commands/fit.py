@@ -250,10 +250,11 @@ def _samples(phase, option: str) -> int:
     return AUTO_SPLIT * phase.spp if value == "auto" else value
 
 
-def prepare(cfg: FitConfig, holdout: int | None = None) -> Prepared:
+def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> Prepared:
     """Open the capture and check everything the fit needs against it (holdout, free keys,
     `[truth]` sizes, each phase's downscale): any problem is a one-line `InputError` before
-    any render."""
+    any render. With `trace`, the views' faces seen from behind are warned (`back_face_warning`;
+    a multi-start's workers leave it to the command, which warned once)."""
     capture = open_capture(cfg.capture, cfg.downscale)
     try:
         held = held_out(len(capture.views), cfg.holdout if holdout is None else holdout)
@@ -273,7 +274,9 @@ def prepare(cfg: FitConfig, holdout: int | None = None) -> Prepared:
     from ..render.scene import back_face_warning  # Mitsuba's: its variant is set by now
 
     views = [(v.name, v.camera) for v in capture.views]
-    message = back_face_warning(capture.scene, views, capture.path or cfg.capture)
+    message = (
+        back_face_warning(capture.scene, views, capture.path or cfg.capture) if trace else None
+    )
     if message:
         log.warning(message)
         capture.warnings.append(message)  # in the summary and the report too
