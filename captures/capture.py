@@ -255,10 +255,10 @@ def load_capture(path: str | Path) -> Capture:
         except CaptureError as err:  # name the manifest and the view
             raise CaptureError(f"{path}: views[{i}].image: {err}") from None
         h, w = image.shape[:2]
-        if not np.all(np.isfinite(image)):
-            bad = int(np.sum(~np.all(np.isfinite(image), axis=-1)))
-            warnings.append(f"{spec.image}: {bad} NaN/Inf pixels get weight 0")
         finite = np.isfinite(image)
+        if not np.all(finite):
+            bad = int(np.sum(~np.all(finite, axis=-1)))
+            warnings.append(f"{spec.image}: {bad} NaN/Inf pixels get weight 0")
         negative = np.any(finite & (image < 0), axis=-1)
         if negative.any():  # dropped: negative, every channel finite and none above 0
             dropped = int(np.sum(negative & np.all(finite, -1) & np.all(image <= 0, -1)))

@@ -198,23 +198,27 @@ def winding_numbers(positions: np.ndarray, faces: np.ndarray, points: np.ndarray
 _RAY_DIRECTIONS = np.array([[0.5377, 0.6919, 0.4817], [-0.7071, 0.1, -0.7], [0.2, -0.9, 0.3873]])
 
 
-def crossings(positions: np.ndarray, faces: np.ndarray, point: np.ndarray) -> np.ndarray:
-    """How many triangles each ray of `_RAY_DIRECTIONS` from `point` crosses (Moller-Trumbore):
-    odd inside a closed mesh, whichever way its faces are wound."""
+def crossings(positions: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(points, rays): how many triangles each ray of `_RAY_DIRECTIONS` from each point crosses
+    (Moller-Trumbore): odd inside a closed mesh, whichever way its faces are wound."""
     v0, v1, v2 = (np.asarray(positions, np.float64)[faces[:, i]] for i in range(3))
-    e1, e2, s = v1 - v0, v2 - v0, np.asarray(point, np.float64) - v0
-    out = []
-    for d in _RAY_DIRECTIONS / np.linalg.norm(_RAY_DIRECTIONS, axis=1, keepdims=True):
-        p = np.cross(d, e2)
-        det = np.einsum("ij,ij->i", e1, p)
-        ok = np.abs(det) > 1e-300
-        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-        u = np.einsum("ij,ij->i", s, p) * inv
+    e1, e2 = v1 - v0, v2 - v0
+    directions = _RAY_DIRECTIONS / np.linalg.norm(_RAY_DIRECTIONS, axis=1, keepdims=True)
+    # per direction, what does not depend on the point
+    ps = [np.cross(d, e2) for d in directions]
+    dets = [np.einsum("ij,ij->i", e1, p) for p in ps]
+    points = np.atleast_2d(np.asarray(points, np.float64))
+    out = np.zeros((len(points), len(directions)), np.int64)
+    for k, point in enumerate(points):
+        s = point - v0
         q = np.cross(s, e1)
-        v = (q @ d) * inv
-        t = np.einsum("ij,ij->i", e2, q) * inv
-        out.append(int(np.sum(ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0))))
-    return np.asarray(out)
+        t_num = np.einsum("ij,ij->i", e2, q)
+        for j, (d, p, det) in enumerate(zip(directions, ps, dets, strict=True)):
+            ok = np.abs(det) > 1e-300
+            inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+            u, v, t = np.einsum("ij,ij->i", s, p) * inv, (q @ d) * inv, t_num * inv
+            out[k, j] = np.sum(ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0))
+    return out
 
 
 def obj_triangles(path: str | Path) -> tuple[np.ndarray, np.ndarray]:

@@ -218,8 +218,9 @@ def image_problem(path: str | Path) -> str | None:
     folder, an unsupported type, not decodable (truncated, corrupt) or holding values that are
     not finite."""
     path = Path(path)
-    if not_utf8(path) is not None:
-        return f"'{not_utf8(path)}' is not a UTF-8 path, which the renderer cannot open; rename it"
+    shown = not_utf8(path)
+    if shown is not None:
+        return f"'{shown}' is not a UTF-8 path, which the renderer cannot open; rename it"
     if path.is_dir():
         return f"'{path.name}' is a folder, not an image; give an image file"
     if not path.is_file():

@@ -202,7 +202,7 @@ def inside(geometry: Geometry, points: np.ndarray) -> np.ndarray:
         positions, faces = obj_triangles(geometry.path)
     unique, index = np.unique(points[near], axis=0, return_inverse=True)
     wound = np.abs(winding_numbers(positions, faces, unique)) > 0.75
-    odd = np.array([np.sum(crossings(positions, faces, p) % 2) >= 2 for p in unique], bool)
+    odd = np.sum(crossings(positions, faces, unique) % 2, axis=1) >= 2  # most of three rays
     out[near] = (wound & odd)[np.ravel(index)]
     return out
 

@@ -567,9 +567,9 @@ def test_winding_numbers_of_open_and_closed_meshes():
     )
     from captures.geometry import crossings
 
-    assert crossings(corners, triangles, points[0]).tolist() == [1, 1, 1]
-    assert crossings(corners, triangles[:, ::-1], points[1]).tolist() == [1, 1, 1]
-    assert np.all(crossings(corners, triangles, points[2]) % 2 == 0)
+    counts = crossings(corners, triangles, points)
+    assert counts[:2].tolist() == [[1, 1, 1]] * 2 and np.all(counts[2:] % 2 == 0)
+    assert crossings(corners, triangles[:, ::-1], points[1]).tolist() == [[1, 1, 1]]
     sheet = np.array([[-50, -50, 0], [50, -50, 0], [50, 50, 0], [-50, 50, 0]], float)
     near = winding_numbers(sheet, np.array([[0, 1, 2], [0, 2, 3]]), [[0, 0, 1e-3], [0, 0, -1]])
     assert np.all(np.abs(near) < 0.5) and abs(near[0]) > 0.49

@@ -349,6 +349,14 @@ def closed_cube(path: Path, wound_inward: bool, normals: int) -> Path:
 
 
 @pytest.mark.parametrize(
+    "lens",
+    [
+        {},
+        {"aperture_radius": 0.05},  # a thin lens: the pixel centres' rays through its centre
+        {"type": "orthographic", "ortho_width": 4.0},
+    ],
+)
+@pytest.mark.parametrize(
     "geometry, origin, seen_from_behind",
     [
         ("sphere", [0, -4, 1], False),
@@ -361,7 +369,7 @@ def closed_cube(path: Path, wound_inward: bool, normals: int) -> Path:
         ("coarse.obj", [0, -5, 1], False),  # 8 segments: normals dip at the silhouette
     ],
 )
-def test_faces_seen_from_behind_are_warned(tmp_path, geometry, origin, seen_from_behind):
+def test_faces_seen_from_behind_are_warned(tmp_path, geometry, origin, seen_from_behind, lens):
     """The materials are one-sided, by the shading normal: a view that sees the surface from
     behind (an open mesh from its inside, normals pointing inward) renders it black; the fit
     warns, naming the views. A mesh wound inside out whose `vn` normals point out renders lit,
@@ -374,7 +382,12 @@ def test_faces_seen_from_behind_are_warned(tmp_path, geometry, origin, seen_from
     closed_cube(tmp_path / "cube.obj", wound_inward=True, normals=1)
     closed_cube(tmp_path / "inward-normals.obj", wound_inward=False, normals=-1)
     target = [0, 0, 0.05] if geometry == "cup" else [0, 0, 1]
-    camera = {"origin": origin, "target": target, "fov_x_deg": 40, "width": 64, "height": 48}
+    camera = {"origin": origin, "target": target, "fov_x_deg": 40, "width": 63, "height": 47}
+    if lens.get("type") == "orthographic":
+        del camera["fov_x_deg"]
+        if geometry == "cup":
+            lens = {**lens, "ortho_width": 0.2}
+    camera.update(lens)
     light = {"center": [2, -2, 4], "target": [0, 0, 0], "size": [0.5, 0.2], "power": 10.0}
     scene = parse_scene(
         {"geometry": geometry, "cameras": [camera], "lights": [light]}, tmp_path / "s.toml"
