@@ -30,6 +30,7 @@ a stack left with one layer is that layer. Plugins and their parameters and opti
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,6 +38,8 @@ from materials.params import FBM, LAYER_PLUGINS, LAYERED, MASK_TEXTURE, ParamSpe
 
 from ..errors import ConfigError
 from .keys import key, parse_key
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -217,6 +220,9 @@ class _Builder:
         return float(value)
 
     def check(self, spec: ParamSpec, value, where: str) -> None:
+        items = value if isinstance(value, list | tuple) else [value]
+        if any(isinstance(x, bool) or not isinstance(x, int | float) for x in items):
+            raise self.error(where, f"must be a number, got {value!r}")
         try:
             spec.check(value, f"{self.file}: {where.rsplit('.', 1)[0]}")
         except ValueError as err:
@@ -330,6 +336,12 @@ def build_material(
         return None
     if len(built) == 1:  # a stack of one is that layer, keyed by its name
         ((name, layer_kind, bsdf, _),) = built
+        b.check(LAYERED.params["bump"], bump, f"{where}.bump")
+        if bump != 0:
+            log.warning(
+                f"{b.file}: {where}.bump = {bump:g} is ignored: the bump comes from the masks of "
+                f"the layers above the first, and only {name!r} is enabled"
+            )
         params = {k: _retraverse(p, f"{name}.") for k, p in b.params.items()}
         return Material(bsdf, params, b.options, ((name, layer_kind),), stacked=False)
     out: dict = {"type": "layered", "layers": ",".join(name for name, *_ in built)}

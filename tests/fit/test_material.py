@@ -10,6 +10,7 @@ import pytest
 
 from captures import InputError
 from fit.config import load_fit_config, load_render_config
+from fit.errors import ConfigError
 from fit.material import (
     PRESET_SCHEMA,
     build_material,
@@ -190,7 +191,11 @@ def test_a_preset_missing_keys_loads_with_a_warning_naming_them(tmp_path, caplog
     (tmp_path / "one.toml").write_text(tomli_w.dumps(doc))
     with caplog.at_level("WARNING"):
         one = load_preset(tmp_path / "one.toml").material
-    assert "layers" not in one.table() and not caplog.records, caplog.text
+    assert "layers" not in one.table(), one.table()
+    # complete; its bump (the masks' height) has no mask left to come from, and says so
+    (record,) = caplog.records
+    assert "one.toml: material.bump = 0.0002 is ignored" in record.getMessage()
+    assert "only 'glaze' is enabled" in record.getMessage()
 
 
 def test_preset_with_a_missing_texture_names_it(tmp_path):
@@ -204,3 +209,34 @@ def test_preset_with_a_missing_texture_names_it(tmp_path):
 
 def test_preset_schema_is_written():
     assert PRESET_SCHEMA == 1
+
+
+def test_a_stack_of_one_layer_checks_its_bump_and_warns_it_is_ignored(caplog):
+    """The bump is the masks' height field; a stack left with one layer has no mask, so its
+    bump does nothing. It was dropped without a word (and without its range checked)."""
+
+    def stack(bump, second=False):
+        return {
+            "type": "layered",
+            "bump": bump,
+            "layers": [
+                {"name": "clay", "type": "oren_nayar"},
+                {"name": "glaze", "type": "glaze", "enabled": second, "mask": {"threshold": 0.5}},
+            ],
+        }
+
+    with caplog.at_level("WARNING"):
+        one = build_material(stack(0.0003), "cup.toml")
+    assert "bump" not in one.params
+    (record,) = caplog.records
+    assert "cup.toml: material.bump = 0.0003 is ignored" in record.getMessage()
+    assert "only 'clay' is enabled" in record.getMessage()
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        build_material(stack(0.0), "cup.toml")  # off: nothing to say
+        two = build_material(stack(0.0003, second=True), "cup.toml")
+    assert not caplog.records, caplog.text
+    assert two.params["bump"].value == pytest.approx(0.0003)
+    for bad in (-1.0, 0.5, "thick"):  # outside [0, 0.01], or not a number: refused by name
+        with pytest.raises(ConfigError, match=r"cup\.toml: material"):
+            build_material(stack(bad), "cup.toml")
