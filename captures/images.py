@@ -121,6 +121,55 @@ def write_image(path: str | Path, linear: np.ndarray) -> Path:
     return path
 
 
+#: The layer a renderer's multi-layer EXR keeps its image in (Blender: `ViewLayer.Combined.R`).
+MAIN_LAYERS = ("", "combined", "rgba", "beauty", "image")
+
+
+def colour_channels(names: list[str]) -> tuple[list[int], int | None] | str:
+    """(the colour channels' indices: R, G, B or one grey, the alpha's or None) among an
+    image's channel names, or why none can be chosen.
+
+    Channels are read by name, the last part after a dot (`ViewLayer.Combined.R`), upper or lower
+    case. One layer holding R, G and B is the image; of several, the one whose name is empty or
+    ends in Combined, RGBA, beauty or image (a renderer's main pass); depth, normals and other
+    passes beside it are ignored. Without RGB, one layer's Y (grey). Luminance-chroma (Y, RY, BY)
+    and XYZ files are refused: their values are not RGB. Unnamed channels (1, 2: grey and
+    alpha, 3 or 4) are taken in order."""
+    layers: dict[str, dict[str, int]] = {}
+    for i, name in enumerate(names):
+        layer, _, suffix = name.rpartition(".")
+        layers.setdefault(layer, {}).setdefault(suffix.upper(), i)
+    suffixes = {suffix for layer in layers.values() for suffix in layer}
+    if {"RY", "BY"} & suffixes:
+        return "a luminance-chroma image (channels Y, RY, BY); save it as RGB"
+    rgb = [layer for layer, c in layers.items() if {"R", "G", "B"} <= c.keys()]
+    if len(rgb) > 1:
+        main = [layer for layer in rgb if layer.rpartition(".")[2].lower() in MAIN_LAYERS]
+        if len(main) != 1:
+            shown = ", ".join(f"'{layer}'" for layer in rgb)
+            return (
+                f"{len(rgb)} layers hold RGB ({shown}) and none is the main one (Combined); "
+                "save the image's layer alone"
+            )
+        rgb = main
+    if rgb:
+        c = layers[rgb[0]]
+        return [c["R"], c["G"], c["B"]], c.get("A")
+    if any({"X", "Y", "Z"} <= c.keys() for c in layers.values()):
+        return "channels X, Y, Z (CIE XYZ colour or a vector), not RGB; save it as RGB"
+    grey = [layer for layer, c in layers.items() if "Y" in c and not {"X", "Z"} & c.keys()]
+    if len(grey) == 1:
+        c = layers[grey[0]]
+        return [c["Y"]], c.get("A")
+    known = {"R", "G", "B", "A", "Y"}
+    if len(names) in (1, 2, 3, 4) and not (suffixes & known):  # unnamed: by position
+        if len(names) in (2, 4):
+            return list(range(len(names) - 1)), len(names) - 1
+        return list(range(len(names))), None
+    shown = ", ".join(names[:8]) + (f" and {len(names) - 8} more" if len(names) > 8 else "")
+    return f"no RGB or grey (Y) channels among {shown}; save it as RGB"
+
+
 def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """(linear RGB float32 (H, W, 3), saturated (H, W) bool, warnings) of an image file.
 
@@ -149,20 +198,21 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
         )
     spec = buf.spec()
     buf.close()
+    chosen = colour_channels(list(spec.channelnames))
+    if isinstance(chosen, str):
+        raise CaptureError(f"{path}: {chosen}")
+    colour, alpha = chosen
     pixels = read_image(path)
     warnings: list[str] = []
     integer = spec.format.basetype in (oiio.UINT8, oiio.UINT16, oiio.UINT32)
-    channels = pixels.shape[2]
-    if channels > 4:
-        raise CaptureError(f"{path}: {channels} channels; expected grey, RGB or RGBA")
-    if channels in (2, 4):  # an alpha channel: the colours are read as stored, alpha dropped
-        seethrough = int(np.count_nonzero(pixels[..., -1] < 1.0))
+    if alpha is not None:  # an alpha channel: the colours are read as stored, alpha dropped
+        seethrough = int(np.count_nonzero(pixels[..., alpha] < 1.0))
         if seethrough:
             warnings.append(
                 f"{path}: its alpha channel is ignored ({seethrough} pixels not opaque); give "
                 "a view's mask as its own image (views[i].mask)"
             )
-        pixels = pixels[..., :-1]
+    pixels = pixels[..., colour]
     if pixels.shape[2] == 1:
         pixels = np.repeat(pixels, 3, axis=2)
     if integer:

@@ -122,6 +122,65 @@ def test_alpha_is_dropped_not_multiplied_in(tmp_path, channels):
     assert len(warnings) == 1 and "alpha channel is ignored (24 pixels" in warnings[0]
 
 
+def _exr(path: Path, names: list[str]) -> Path:
+    """A 4x3 half-float EXR whose channel k holds k + 1 everywhere, its channels named."""
+    import OpenImageIO as oiio
+
+    spec = oiio.ImageSpec(4, 3, len(names), oiio.HALF)
+    spec.channelnames = names
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), spec)
+    out.write_image(
+        np.broadcast_to(np.arange(1, len(names) + 1, dtype=np.float32), (3, 4, len(names)))
+    )
+    out.close()
+    return path
+
+
+@pytest.mark.parametrize(
+    "names, expected",
+    [
+        (["R", "G", "B"], [1, 2, 3]),
+        (["B", "G", "R"], [3, 2, 1]),  # stored in any order: read by name
+        (["r", "g", "b", "a"], [1, 2, 3]),
+        (["Y"], [1, 1, 1]),
+        (["Y", "A"], [1, 1, 1]),
+        (["R", "G", "B", "A", "Z"], [1, 2, 3]),  # a depth beside the image
+        # Blender's multi-layer EXR: the Combined pass, other passes beside it ignored
+        (["ViewLayer.Combined.R", "ViewLayer.Combined.G", "ViewLayer.Combined.B",
+          "ViewLayer.Combined.A", "ViewLayer.Depth.Z"], [1, 2, 3]),
+        (["ViewLayer.Normal.X", "ViewLayer.Normal.Y", "ViewLayer.Normal.Z",
+          "ViewLayer.Combined.R", "ViewLayer.Combined.G", "ViewLayer.Combined.B",
+          "ViewLayer.Diffuse.R", "ViewLayer.Diffuse.G", "ViewLayer.Diffuse.B"], [4, 5, 6]),
+        (["Beauty.R", "Beauty.G", "Beauty.B", "Z"], [1, 2, 3]),
+    ],
+)  # fmt: skip
+def test_an_exrs_colour_is_read_by_channel_name(tmp_path, names, expected):
+    """Other renderers' EXRs keep the image beside other passes (depth, normals) or in a named
+    layer; five channels or more were refused, and any three taken as RGB in order."""
+    pixels, _, _ = read_linear(_exr(tmp_path / "t.exr", names), "linear")
+    assert pixels.shape == (3, 4, 3)
+    np.testing.assert_array_equal(pixels[1, 2], np.asarray(expected, np.float32))
+
+
+@pytest.mark.parametrize(
+    "names, message",
+    [
+        (["X", "Y", "Z"], "channels X, Y, Z .* not RGB"),
+        (["Y", "RY", "BY"], "a luminance-chroma image"),
+        (["a.R", "a.G", "a.B", "b.R", "b.G", "b.B"], "2 layers hold RGB \\('a', 'b'\\)"),
+        (["Depth.Z", "Normal.X", "Normal.Y"], "no RGB or grey"),
+        (["R", "G"], "no RGB or grey"),
+    ],
+)
+def test_an_exr_without_one_rgb_image_is_refused_by_name(tmp_path, names, message):
+    """Values that are not RGB (XYZ colour, luminance-chroma, a vector pass) were taken as RGB;
+    a file with several RGB layers and no main one has no answer to guess."""
+    path = _exr(tmp_path / "t.exr", names)
+    with pytest.raises(CaptureError, match=f"t\\.exr: {message}"):
+        read_linear(path, "linear")
+
+
 def test_validity_weights():
     image = np.full((20, 20, 3), 0.5, np.float32)
     image[2, 2] = np.nan
