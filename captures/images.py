@@ -132,9 +132,9 @@ def colour_channels(names: list[str]) -> tuple[list[int], int | None] | str:
     Channels are read by name, the last part after a dot (`ViewLayer.Combined.R`), upper or lower
     case. One layer holding R, G and B is the image; of several, the one whose name is empty or
     ends in Combined, RGBA, beauty or image (a renderer's main pass); depth, normals and other
-    passes beside it are ignored. Without RGB, one layer's Y (grey). Luminance-chroma (Y, RY, BY)
-    and XYZ files are refused: their values are not RGB. Unnamed channels (1, 2: grey and
-    alpha, 3 or 4) are taken in order."""
+    passes beside it are ignored. Without RGB, one layer's Y, or a single channel of any name, is
+    grey (with an A beside it, alpha). Luminance-chroma (Y, RY, BY) and XYZ files are refused:
+    their values are not RGB. Unnamed channels (3 or 4: RGB and alpha) are taken in order."""
     layers: dict[str, dict[str, int]] = {}
     for i, name in enumerate(names):
         layer, _, suffix = name.rpartition(".")
@@ -161,8 +161,13 @@ def colour_channels(names: list[str]) -> tuple[list[int], int | None] | str:
     if len(grey) == 1:
         c = layers[grey[0]]
         return [c["Y"]], c.get("A")
+    if len(names) == 1:  # one channel, whatever its name (R, L, Z...): grey
+        return [0], None
+    alpha = [i for i, name in enumerate(names) if name.rpartition(".")[2].upper() == "A"]
+    if len(names) == 2 and len(alpha) == 1:  # (EXR keeps its channels sorted: A first)
+        return [1 - alpha[0]], alpha[0]
     known = {"R", "G", "B", "A", "Y"}
-    if len(names) in (1, 2, 3, 4) and not (suffixes & known):  # unnamed: by position
+    if len(names) in (2, 3, 4) and not (suffixes & known):  # unnamed: by position
         if len(names) in (2, 4):
             return list(range(len(names) - 1)), len(names) - 1
         return list(range(len(names))), None

@@ -145,6 +145,8 @@ def _exr(path: Path, names: list[str]) -> Path:
         (["r", "g", "b", "a"], [1, 2, 3]),
         (["Y"], [1, 1, 1]),
         (["Y", "A"], [1, 1, 1]),
+        (["R"], [1, 1, 1]),  # one channel, named as a tool likes: grey
+        (["L", "A"], [1, 1, 1]),
         (["R", "G", "B", "A", "Z"], [1, 2, 3]),  # a depth beside the image
         # Blender's multi-layer EXR: the Combined pass, other passes beside it ignored
         (["ViewLayer.Combined.R", "ViewLayer.Combined.G", "ViewLayer.Combined.B",
