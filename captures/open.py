@@ -27,11 +27,17 @@ def open_capture(path: str | Path, downscale: int = 1) -> Capture:
         )
     if path.is_dir() and (path / "filenames.txt").exists():
         return diligent_capture(path, downscale)
+    if path.is_dir() and not (path / "capture.toml").exists() and (path / "scene.json").is_file():
+        path = path / "scene.json"  # a peer target's folder
     if path.name == "scene.json":
         try:
             capture = peer_capture(path)
         except CaptureError:
             raise
+        except OSError as err:
+            raise CaptureError(
+                f"{path}: cannot read ({err.strerror or err}); check the path"
+            ) from None
         except (ValueError, TypeError, KeyError, AttributeError, IndexError) as err:
             raise CaptureError(
                 f"{path}: not a peer scene.json this version reads ({type(err).__name__}: {err}); "

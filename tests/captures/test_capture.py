@@ -259,6 +259,19 @@ def test_peer_capture_truth(shared_data):
     assert len(capture.views) == 3 and all(v.weight.mean() == 1 for v in capture.views)
 
 
+def test_a_peer_targets_folder_opens_as_its_scene_json(shared_data, tmp_path):
+    """`layerfit fit`'s capture may name the peer target's folder, as it may a manifest's; the
+    folder was refused as holding "no capture.toml, scene.json" while it held a scene.json."""
+    from captures import open_capture
+
+    folder = shared_data / "peer-cycles" / "sphere-blue"
+    capture = open_capture(folder)
+    assert len(capture.views) == 3 and capture.truth == open_capture(folder / "scene.json").truth
+    (tmp_path / "scene.json").mkdir()  # a folder by that name: one line, not a traceback
+    with pytest.raises(CaptureError, match=r"scene\.json: cannot read"):
+        open_capture(tmp_path / "scene.json")
+
+
 # Manifests ---------------------------------------------------------------------------------------
 
 SCENE = {"geometry": "sphere", "environment": [0.1, 0.1, 0.1]}
