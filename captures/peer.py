@@ -3,80 +3,87 @@
 from __future__ import annotations
 
 import json
+import re
+from dataclasses import replace
 from pathlib import Path
 
 from .errors import CaptureError
-from .scene import Camera, ObjFile, RectLight, Scene
-
-
-def _vec(value, where: str, n: int = 3) -> tuple[float, ...]:
-    try:
-        out = tuple(float(x) for x in value)
-    except (TypeError, ValueError):
-        raise CaptureError(f"{where}: expected {n} numbers, got {value!r}") from None
-    if len(out) != n:
-        raise CaptureError(f"{where}: expected {n} numbers, got {len(out)}")
-    return out
+from .scene import Scene
+from .schema import parse_scene
 
 
 def load_peer_scene(path: str | Path) -> Scene:
     """Read a peer `scene.json`: cameras, rectangle lights, constant environment, mesh.
 
-    The returned scene's `meta` keeps the peer's `material` table and each view's image path.
+    Its values pass the checks of a capture manifest's `[scene]` (`parse_scene`: numbers and
+    their ranges, a camera's field of view, up and target, a light's size and radiance, a camera
+    inside the object), its errors named by the JSON's fields. The returned scene's `meta` keeps
+    the peer's `material` table and each view's image path.
     """
     path = Path(path)
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(path.read_text(encoding="utf-8-sig"))
     except FileNotFoundError:
         raise CaptureError(f"{path}: no such file") from None
     except json.JSONDecodeError as err:
         raise CaptureError(f"{path}: not valid JSON ({err})") from None
 
-    def field(table: dict, key: str, where: str):
+    def field(table, key: str, where: str):
+        if not isinstance(table, dict):
+            raise CaptureError(f"{path}: {where} is {table!r}, not an object")
         if key not in table:
             raise CaptureError(f"{path}: {where} has no field {key!r}")
         return table[key]
 
-    cameras, images = [], []
-    for i, view in enumerate(field(doc, "views", "the file")):
-        where = f"{path}: views[{i}]"
-        cameras.append(
-            Camera(
-                origin=_vec(field(view, "origin", f"views[{i}]"), f"{where}.origin"),
-                target=_vec(field(view, "target", f"views[{i}]"), f"{where}.target"),
-                up=_vec(field(view, "up", f"views[{i}]"), f"{where}.up"),
-                fov_x_deg=float(field(view, "fov_x_deg", f"views[{i}]")),
-                width=int(field(view, "width", f"views[{i}]")),
-                height=int(field(view, "height", f"views[{i}]")),
-            )
+    views = field(doc, "views", "the file")
+    if not isinstance(views, list) or not views:
+        raise CaptureError(f"{path}: views must be a list of one or more views")
+    keys = ("origin", "target", "up", "fov_x_deg", "width", "height")
+    cameras = [{k: field(view, k, f"views[{i}]") for k in keys} for i, view in enumerate(views)]
+    images = [path.parent / str(field(v, "image", f"views[{i}]")) for i, v in enumerate(views)]
+    lights = doc.get("lights", [])
+    if not isinstance(lights, list):
+        raise CaptureError(f"{path}: lights must be a list")
+    keys = ("center", "u_axis", "v_axis", "size", "emit_direction")
+    tables = []
+    for i, light in enumerate(lights):
+        kind = field(light, "type", f"lights[{i}]")
+        if kind != "rectangle":
+            raise CaptureError(f"{path}: lights[{i}].type = {kind!r}; only 'rectangle' is known")
+        table = {k: field(light, k, f"lights[{i}]") for k in keys}
+        tables.append({"type": "rectangle", **table, "radiance": field(light, "radiance_rgb", "")})
+    name = str(field(doc, "mesh", "the file"))
+    if not (path.parent / name).is_file():
+        raise CaptureError(f"{path}: mesh {name!r} does not exist next to it")
+    environment = doc.get("environment_radiance_rgb", [0.0, 0.0, 0.0])
+    if not isinstance(environment, list) or len(environment) != 3:
+        raise CaptureError(
+            f"{path}: environment_radiance_rgb: expected 3 numbers, got {environment!r}"
         )
-        images.append(path.parent / field(view, "image", f"views[{i}]"))
-    lights = []
-    for i, light in enumerate(doc.get("lights", [])):
-        where = f"{path}: lights[{i}]"
-        if light.get("type") != "rectangle":
-            raise CaptureError(f"{where}.type = {light.get('type')!r}; only 'rectangle' is known")
-        lights.append(
-            RectLight(
-                center=_vec(field(light, "center", f"lights[{i}]"), f"{where}.center"),
-                u_axis=_vec(field(light, "u_axis", f"lights[{i}]"), f"{where}.u_axis"),
-                v_axis=_vec(field(light, "v_axis", f"lights[{i}]"), f"{where}.v_axis"),
-                size=_vec(field(light, "size", f"lights[{i}]"), f"{where}.size", 2),
-                emit_direction=_vec(
-                    field(light, "emit_direction", f"lights[{i}]"), f"{where}.emit_direction"
-                ),
-                radiance=_vec(
-                    field(light, "radiance_rgb", f"lights[{i}]"), f"{where}.radiance_rgb"
-                ),
-            )
-        )
-    mesh = path.parent / field(doc, "mesh", "the file")
-    if not mesh.exists():
-        raise CaptureError(f"{path}: mesh {mesh.name!r} does not exist next to it")
-    return Scene(
-        geometry=ObjFile(mesh),
-        cameras=tuple(cameras),
-        lights=tuple(lights),
-        environment=_vec(doc.get("environment_radiance_rgb", (0, 0, 0)), f"{path}: environment"),
-        meta={"material": doc.get("material", {}), "images": images},
-    )
+    table = {
+        "geometry": {"type": "obj", "file": name},  # relative to the scene.json
+        "cameras": cameras,
+        "lights": tables,
+        "environment": environment,
+    }
+    try:
+        scene = parse_scene(table, path)
+    except CaptureError as err:
+        raise CaptureError(_peer_names(str(err))) from None
+    return replace(scene, meta={"material": doc.get("material", {}), "images": images})
+
+
+def _peer_names(message: str) -> str:
+    """A `[scene]` error in the peer file's own field names."""
+    message = re.sub(r"scene\.lights\[(\d+)\]\.radiance\b", r"lights[\1].radiance_rgb", message)
+    for ours, theirs in (
+        ("scene.cameras[", "views["),
+        ("scene.lights[", "lights["),
+        ("scene.environment", "environment_radiance_rgb"),
+        ("scene.geometry.file", "mesh"),
+        ("scene.geometry", "mesh"),
+        ("add [[scene.lights]] or an environment", "add lights or environment_radiance_rgb"),
+        (": scene: ", ": "),
+    ):
+        message = message.replace(ours, theirs)
+    return message

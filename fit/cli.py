@@ -514,7 +514,8 @@ def inspect(
     capture: Annotated[
         Path,
         typer.Argument(
-            help="capture.toml (or its folder), a peer scene.json, or a DiLiGenT folder."
+            help="capture.toml (or its folder), a peer scene.json (or its folder), or a "
+            "DiLiGenT folder."
         ),
     ],
     sheet: Annotated[

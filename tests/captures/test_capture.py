@@ -435,7 +435,7 @@ def _peer_folder(folder: Path, image_name: str, material: dict) -> Path:
             }
         ],
         "lights": [],
-        "environment_radiance_rgb": [0.0, 0.0, 0.0],
+        "environment_radiance_rgb": [0.05, 0.05, 0.05],
         "material": material,
     }
     path = folder / "scene.json"
@@ -518,6 +518,57 @@ def test_a_peer_material_table_with_bad_values_is_named(tmp_path, material, mess
     path = _peer_folder(tmp_path / "peer", "view_00.exr", material)
     write_image(tmp_path / "peer" / "view_00.exr", np.full((6, 8, 3), 0.2, np.float32))
     with pytest.raises(CaptureError, match=message):
+        peer_capture(path)
+
+
+def _view(doc):
+    return doc["views"][0]
+
+
+def _light(doc):
+    doc["lights"] = [
+        {
+            "type": "rectangle",
+            "center": [3.0, -2.0, 3.0],
+            "u_axis": [1.0, 0.0, 0.0],
+            "v_axis": [0.0, 1.0, 0.0],
+            "emit_direction": [0.0, 0.0, -1.0],
+            "size": [1.0, 1.0],
+            "radiance_rgb": [10.0, 10.0, 10.0],
+        }
+    ]
+    return doc["lights"][0]
+
+
+@pytest.mark.parametrize(
+    "part, change, message",
+    [
+        ("view", {"fov_x_deg": 200}, r"views\[0\]\.fov_x_deg: got 200; should be less"),
+        ("view", {"origin": [0, 0, 0]}, r"views\[0\]\.target: equals origin"),
+        ("view", {"origin": [float("nan"), 0, 0]}, r"views\[0\]\.origin\[0\]: got nan"),
+        ("view", {"up": [3, -3, 2]}, r"views\[0\]\.up: .* along the viewing"),
+        ("view", {"width": 0}, r"views\[0\]\.width: got 0"),
+        ("view", {"origin": [0.1, 0.1, 0.1]}, r"views\[0\]\.origin .* inside the object"),
+        ("light", {"radiance_rgb": [-1, 1, 1]}, r"lights\[0\]\.radiance_rgb\[0\]: got -1"),
+        ("light", {"size": [0, 1]}, r"lights\[0\]\.size\[0\]: got 0"),
+        ("doc", {"views": []}, r"views must be a list of one or more"),
+        ("doc", {"environment_radiance_rgb": "bright"}, r"environment_radiance_rgb: expected 3"),
+        ("doc", {"environment_radiance_rgb": [0, 0, 0]}, r"the scene has no light; add lights"),
+    ],
+)
+def test_a_peer_scene_passes_a_manifests_checks_named_by_its_fields(
+    tmp_path, part, change, message
+):
+    """A peer scene.json's cameras, lights and environment were read without a manifest's checks:
+    a field of view outside (0, 180) or a camera on its target was an internal error from the
+    renderer, a NaN origin or a camera inside the object rendered nothing, a negative radiance
+    or a light of no size was taken. Now each is one line naming the JSON's field."""
+    path = _peer_folder(tmp_path / "peer", "view_00.exr", {"base_color": [0.5, 0.4, 0.3]})
+    write_image(tmp_path / "peer" / "view_00.exr", np.full((6, 8, 3), 0.2, np.float32))
+    doc = json.loads(path.read_text())
+    {"view": _view, "light": _light, "doc": lambda d: d}[part](doc).update(change)
+    path.write_text(json.dumps(doc))
+    with pytest.raises(CaptureError, match=r"peer/scene\.json: " + message):
         peer_capture(path)
 
 
