@@ -12,7 +12,6 @@ all starts (common random numbers), so the comparison is not decided by Monte Ca
 
 from __future__ import annotations
 
-import logging
 import math
 import resource
 import time
@@ -76,13 +75,7 @@ def fit_from(
 
     prepare_worker(1, variant, cache)
     began = time.perf_counter()
-    # the command prepared this fit before the starts and warned then; each worker would repeat
-    # every warning of the capture's and the config's loading
-    logging.disable(logging.WARNING)
-    try:
-        problem = prepare(cfg, holdout, trace=False).problem
-    finally:
-        logging.disable(logging.NOTSET)
+    problem = prepare(cfg, holdout, trace=False).problem
     values = problem.values(u)
     start = {f.key: values[f.key] for f in problem.free}
     result = run_schedule(problem, start, cfg.phases, cfg.seed, None, cfg.uncertainty_spp)

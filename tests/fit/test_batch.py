@@ -125,36 +125,6 @@ def test_multi_start_keeps_the_best_by_a_common_loss(tmp_path, ray_cluster):
     assert (tmp_path / "run" / "report.html").exists()
 
 
-def test_a_start_worker_does_not_repeat_the_commands_warnings(tmp_path, monkeypatch, caplog):
-    """The command prepares a multi-start fit (and warns) before its starts; each worker
-    prepared it again and repeated every warning (run here in-process, its schedule stubbed)."""
-    from fit.batch import starts
-    from fit.commands.fit import prepare
-
-    sphere_capture(tmp_path / "cap", 20, 15, spp=4)
-    manifest = tmp_path / "cap" / "capture.toml"
-    text = manifest.read_text().replace("[truth]\n", '[truth]\n"glaze.roughnes" = 0.06\n')
-    manifest.write_text(text)  # a misspelt truth key: not scored, said once
-    (tmp_path / "fit.toml").write_text(TINY)
-    cfg = load_fit_config(tmp_path / "fit.toml")
-    with caplog.at_level("WARNING"):
-        prepared = prepare(cfg, trace=False)
-    assert "did you mean glaze.roughness" in caplog.text  # the command's one warning
-    caplog.clear()
-    monkeypatch.setattr(starts, "prepare_worker", lambda *args: None)
-    monkeypatch.setattr(starts, "common_loss", lambda *args: 0.0)
-    done = dataclasses.make_dataclass("Done", ["u"])
-    monkeypatch.setattr(starts, "run_schedule", lambda problem, *args: done(args[0]))
-    u = prepared.problem.unconstrained(prepared.start)
-    with caplog.at_level("WARNING"):
-        out = starts.fit_from(cfg, None, u, None, "")
-    assert not caplog.records, caplog.text
-    assert out["loss"] == 0.0 and set(out["start"]) == {"glaze.pigment"}
-    with caplog.at_level("WARNING"):  # and warnings are on again after it
-        prepare(cfg, trace=False)
-    assert "did you mean glaze.roughness" in caplog.text
-
-
 def test_start_points_leave_a_bound():
     """Starts spread around a start at ior's lower bound reach the plausible range (the centre
     is pulled off the sigmoid's flat end), and start 0 is the configured start."""
