@@ -32,15 +32,16 @@ def srgb_decode(encoded: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """Pixels as float32 (H, W, C) exactly as stored (no colour decoding)."""
+def read_image(path: str | Path, channels: tuple[int, int] | None = None) -> np.ndarray:
+    """Pixels as float32 (H, W, C) exactly as stored (no colour decoding): all channels, or
+    those from `channels[0]` up to `channels[1]` (a multi-layer file's passes left unread)."""
     path = Path(path)
     require_utf8(path, CaptureError)
     if not path.exists():
         raise CaptureError(f"{path}: no such image file; check the path")
     if path.is_dir():
         raise CaptureError(f"{path}: is a folder, not an image; give an image file")
-    pixels, problem = _decode(path)
+    pixels, problem = _decode(path, channels)
     if problem is not None:
         raise CaptureError(f"{path}: {problem}")
     return pixels
@@ -71,14 +72,22 @@ def _c_stderr_silenced():
         os.close(saved)
 
 
-def _decode(path: Path) -> tuple[np.ndarray | None, str | None]:
-    """The pixels as float32 (H, W, C), or why they cannot be read (one line)."""
+def _decode(
+    path: Path, channels: tuple[int, int] | None = None
+) -> tuple[np.ndarray | None, str | None]:
+    """The pixels as float32 (H, W, C) (of `channels`, a range, where given), or why they
+    cannot be read (one line)."""
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)  # colours as stored, not times alpha
     with _c_stderr_silenced():
         buf = oiio.ImageBuf(str(path), 0, 0, config)
         opened = not buf.has_error
-        pixels = buf.get_pixels(oiio.FLOAT) if opened else None
+        pixels = None
+        if opened:
+            roi = buf.roi
+            if channels is not None:
+                roi = oiio.ROI(roi.xbegin, roi.xend, roi.ybegin, roi.yend, 0, 1, *channels)
+            pixels = buf.get_pixels(oiio.FLOAT, roi)
     if not opened:
         oiio.geterror()  # the same error, pending globally: cleared
         return None, f"cannot read image ({_first_line(buf.geterror())}); convert it"
@@ -131,10 +140,11 @@ def colour_channels(names: list[str]) -> tuple[list[int], int | None] | str:
 
     Channels are read by name, the last part after a dot (`ViewLayer.Combined.R`), upper or lower
     case. One layer holding R, G and B is the image; of several, the one whose name is empty or
-    ends in Combined, RGBA, beauty or image (a renderer's main pass); depth, normals and other
-    passes beside it are ignored. Without RGB, one layer's Y, or a single channel of any name, is
-    grey (with an A beside it, alpha). Luminance-chroma (Y, RY, BY) and XYZ files are refused:
-    their values are not RGB. Unnamed channels (3 or 4: RGB and alpha) are taken in order."""
+    ends in Combined, RGBA, beauty or image (a renderer's main pass; of two, Blender's compositor
+    output `Composite.Combined`); depth, normals and other passes beside it are ignored. Without
+    RGB, one layer's Y, or a single channel of any name, is grey (with an A beside it, alpha;
+    OpenImageIO names two channels not marked alpha R, G: grey and alpha too). Luminance-chroma
+    (Y, RY, BY), XYZ and other files are refused: their values are not RGB."""
     layers: dict[str, dict[str, int]] = {}
     for i, name in enumerate(names):
         layer, _, suffix = name.rpartition(".")
@@ -145,19 +155,19 @@ def colour_channels(names: list[str]) -> tuple[list[int], int | None] | str:
     rgb = [layer for layer, c in layers.items() if {"R", "G", "B"} <= c.keys()]
     if len(rgb) > 1:
         main = [layer for layer in rgb if layer.rpartition(".")[2].lower() in MAIN_LAYERS]
+        if len(main) > 1:  # Blender's compositor output beside the render layer's: the final
+            main = [layer for layer in main if layer.lower().startswith("composite")] or main
         if len(main) != 1:
             shown = ", ".join(f"'{layer}'" for layer in rgb)
-            return (
-                f"{len(rgb)} layers hold RGB ({shown}) and none is the main one (Combined); "
-                "save the image's layer alone"
-            )
+            which = "several are main ones" if main else "none is the main one (Combined)"
+            return f"{len(rgb)} layers hold RGB ({shown}) and {which}; save the image's alone"
         rgb = main
     if rgb:
         c = layers[rgb[0]]
         return [c["R"], c["G"], c["B"]], c.get("A")
     if any({"X", "Y", "Z"} <= c.keys() for c in layers.values()):
         return "channels X, Y, Z (CIE XYZ colour or a vector), not RGB; save it as RGB"
-    grey = [layer for layer, c in layers.items() if "Y" in c and not {"X", "Z"} & c.keys()]
+    grey = [layer for layer, c in layers.items() if "Y" in c and "X" not in c]  # not a vector
     if len(grey) == 1:
         c = layers[grey[0]]
         return [c["Y"]], c.get("A")
@@ -166,11 +176,8 @@ def colour_channels(names: list[str]) -> tuple[list[int], int | None] | str:
     alpha = [i for i, name in enumerate(names) if name.rpartition(".")[2].upper() == "A"]
     if len(names) == 2 and len(alpha) == 1:  # (EXR keeps its channels sorted: A first)
         return [1 - alpha[0]], alpha[0]
-    known = {"R", "G", "B", "A", "Y"}
-    if len(names) in (2, 3, 4) and not (suffixes & known):  # unnamed: by position
-        if len(names) in (2, 4):
-            return list(range(len(names) - 1)), len(names) - 1
-        return list(range(len(names))), None
+    if list(names) == ["R", "G"]:  # OpenImageIO's names for two channels not marked alpha
+        return [0], 1
     shown = ", ".join(names[:8]) + (f" and {len(names) - 8} more" if len(names) > 8 else "")
     return f"no RGB or grey (Y) channels among {shown}; save it as RGB"
 
@@ -206,8 +213,10 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
     chosen = colour_channels(list(spec.channelnames))
     if isinstance(chosen, str):
         raise CaptureError(f"{path}: {chosen}")
-    colour, alpha = chosen
-    pixels = read_image(path)
+    used = [*chosen[0], *([] if chosen[1] is None else [chosen[1]])]
+    first = min(used)  # read from the first channel used to the last
+    colour, alpha = [i - first for i in chosen[0]], None if chosen[1] is None else chosen[1] - first
+    pixels = read_image(path, (first, max(used) + 1))
     warnings: list[str] = []
     integer = spec.format.basetype in (oiio.UINT8, oiio.UINT16, oiio.UINT32)
     if alpha is not None:  # an alpha channel: the colours are read as stored, alpha dropped

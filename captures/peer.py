@@ -40,6 +40,10 @@ def load_peer_scene(path: str | Path) -> Scene:
         raise CaptureError(f"{path}: views must be a list of one or more views")
     keys = ("origin", "target", "up", "fov_x_deg", "width", "height")
     cameras = [{k: field(view, k, f"views[{i}]") for k in keys} for i, view in enumerate(views)]
+    for camera in cameras:  # a script's computed size (160.0) is a whole number of pixels
+        for k in ("width", "height"):
+            if isinstance(camera[k], float) and camera[k].is_integer():
+                camera[k] = int(camera[k])
     images = [path.parent / str(field(v, "image", f"views[{i}]")) for i, v in enumerate(views)]
     lights = doc.get("lights", [])
     if not isinstance(lights, list):
@@ -51,7 +55,8 @@ def load_peer_scene(path: str | Path) -> Scene:
         if kind != "rectangle":
             raise CaptureError(f"{path}: lights[{i}].type = {kind!r}; only 'rectangle' is known")
         table = {k: field(light, k, f"lights[{i}]") for k in keys}
-        tables.append({"type": "rectangle", **table, "radiance": field(light, "radiance_rgb", "")})
+        radiance = field(light, "radiance_rgb", f"lights[{i}]")
+        tables.append({"type": "rectangle", **table, "radiance": radiance})
     name = str(field(doc, "mesh", "the file"))
     if not (path.parent / name).is_file():
         raise CaptureError(f"{path}: mesh {name!r} does not exist next to it")
@@ -79,6 +84,7 @@ def _peer_names(message: str) -> str:
     for ours, theirs in (
         ("scene.cameras[", "views["),
         ("scene.lights[", "lights["),
+        ("scene.environment.radiance", "environment_radiance_rgb"),
         ("scene.environment", "environment_radiance_rgb"),
         ("scene.geometry.file", "mesh"),
         ("scene.geometry", "mesh"),

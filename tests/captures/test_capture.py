@@ -141,12 +141,13 @@ def _exr(path: Path, names: list[str]) -> Path:
     "names, expected",
     [
         (["R", "G", "B"], [1, 2, 3]),
-        (["B", "G", "R"], [3, 2, 1]),  # stored in any order: read by name
         (["r", "g", "b", "a"], [1, 2, 3]),
         (["Y"], [1, 1, 1]),
         (["Y", "A"], [1, 1, 1]),
         (["R"], [1, 1, 1]),  # one channel, named as a tool likes: grey
         (["L", "A"], [1, 1, 1]),
+        (["R", "G"], [1, 1, 1]),  # OpenImageIO's names for two channels, alpha not marked
+        (["Y", "Z"], [1, 1, 1]),  # grey beside a depth
         (["R", "G", "B", "A", "Z"], [1, 2, 3]),  # a depth beside the image
         # Blender's multi-layer EXR: the Combined pass, other passes beside it ignored
         (["ViewLayer.Combined.R", "ViewLayer.Combined.G", "ViewLayer.Combined.B",
@@ -155,6 +156,11 @@ def _exr(path: Path, names: list[str]) -> Path:
           "ViewLayer.Combined.R", "ViewLayer.Combined.G", "ViewLayer.Combined.B",
           "ViewLayer.Diffuse.R", "ViewLayer.Diffuse.G", "ViewLayer.Diffuse.B"], [4, 5, 6]),
         (["Beauty.R", "Beauty.G", "Beauty.B", "Z"], [1, 2, 3]),
+        # with the compositor on, Blender writes its output beside the render layer's
+        (["Composite.Combined.R", "Composite.Combined.G", "Composite.Combined.B",
+          "ViewLayer.Combined.R", "ViewLayer.Combined.G", "ViewLayer.Combined.B"], [1, 2, 3]),
+        (["ViewLayer.Combined.R", "ViewLayer.Combined.G", "ViewLayer.Combined.B",
+          "Composite.Combined.R", "Composite.Combined.G", "Composite.Combined.B"], [4, 5, 6]),
     ],
 )  # fmt: skip
 def test_an_exrs_colour_is_read_by_channel_name(tmp_path, names, expected):
@@ -172,7 +178,18 @@ def test_an_exrs_colour_is_read_by_channel_name(tmp_path, names, expected):
         (["Y", "RY", "BY"], "a luminance-chroma image"),
         (["a.R", "a.G", "a.B", "b.R", "b.G", "b.B"], "2 layers hold RGB \\('a', 'b'\\)"),
         (["Depth.Z", "Normal.X", "Normal.Y"], "no RGB or grey"),
-        (["R", "G"], "no RGB or grey"),
+        (["U", "V"], "no RGB or grey"),
+        (
+            [
+                "a.Combined.R",
+                "a.Combined.G",
+                "a.Combined.B",
+                "b.Combined.R",
+                "b.Combined.G",
+                "b.Combined.B",
+            ],
+            "2 layers hold RGB .* and several are main ones",
+        ),
     ],
 )
 def test_an_exr_without_one_rgb_image_is_refused_by_name(tmp_path, names, message):
@@ -551,6 +568,8 @@ def _light(doc):
         ("view", {"origin": [0.1, 0.1, 0.1]}, r"views\[0\]\.origin .* inside the object"),
         ("light", {"radiance_rgb": [-1, 1, 1]}, r"lights\[0\]\.radiance_rgb\[0\]: got -1"),
         ("light", {"size": [0, 1]}, r"lights\[0\]\.size\[0\]: got 0"),
+        ("light", {"radiance_rgb": None}, r"lights\[0\] has no field 'radiance_rgb'"),
+        ("doc", {"environment_radiance_rgb": [-1, 0, 0]}, r"environment_radiance_rgb\[0\]: got -1"),
         ("doc", {"views": []}, r"views must be a list of one or more"),
         ("doc", {"environment_radiance_rgb": "bright"}, r"environment_radiance_rgb: expected 3"),
         ("doc", {"environment_radiance_rgb": [0, 0, 0]}, r"the scene has no light; add lights"),
@@ -566,9 +585,26 @@ def test_a_peer_scene_passes_a_manifests_checks_named_by_its_fields(
     path = _peer_folder(tmp_path / "peer", "view_00.exr", {"base_color": [0.5, 0.4, 0.3]})
     write_image(tmp_path / "peer" / "view_00.exr", np.full((6, 8, 3), 0.2, np.float32))
     doc = json.loads(path.read_text())
-    {"view": _view, "light": _light, "doc": lambda d: d}[part](doc).update(change)
+    table = {"view": _view, "light": _light, "doc": lambda d: d}[part](doc)
+    table.update(change)
+    for key in [k for k, v in change.items() if v is None]:  # a field left out
+        del table[key]
     path.write_text(json.dumps(doc))
     with pytest.raises(CaptureError, match=r"peer/scene\.json: " + message):
+        peer_capture(path)
+
+
+def test_a_peer_views_size_may_be_a_whole_float(tmp_path):
+    """A script's computed resolution (160.0) is a whole number of pixels; 160.5 is not."""
+    path = _peer_folder(tmp_path / "peer", "view_00.exr", {"base_color": [0.5, 0.4, 0.3]})
+    write_image(tmp_path / "peer" / "view_00.exr", np.full((6, 8, 3), 0.2, np.float32))
+    doc = json.loads(path.read_text())
+    _view(doc).update(width=8.0, height=6.0)
+    path.write_text(json.dumps(doc))
+    assert peer_capture(path).views[0].image.shape == (6, 8, 3)
+    _view(doc).update(width=8.5)
+    path.write_text(json.dumps(doc))
+    with pytest.raises(CaptureError, match=r"views\[0\]\.width: got 8\.5"):
         peer_capture(path)
 
 
