@@ -9,6 +9,7 @@ wall's band of `v`.
 
 from __future__ import annotations
 
+from array import array
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -310,8 +311,11 @@ def check_obj(path: str | Path, face_normals: bool = False) -> ObjCheck:
         raise CaptureError(f"{path}: cannot read ({err.strerror})") from None
     counts = {"v": 0, "vt": 0, "vn": 0}
     faces, faces_with_vt = 0, 0
-    positions, triangles = [], []  # every vertex; each face's first three corners (0-based)
-    corners_v, corners_t, sizes = [], [], []  # each face's vertex and texture indices, corners
+    # every vertex (x, y, z); each face's first three corners, all faces' vertex and texture
+    # indices (0-based) and their corner counts: typed arrays, a fifth of lists' memory (a
+    # million-face scan took 726 MB with lists)
+    positions, triangles = array("d"), array("q")
+    corners_v, corners_t, sizes = array("q"), array("q"), array("q")
     for number, line in enumerate(text.splitlines(), 1):
         words = line.split()
         if not words:
@@ -320,7 +324,7 @@ def check_obj(path: str | Path, face_normals: bool = False) -> ObjCheck:
             counts[words[0]] += 1
             numbers = _check_numbers(path, number, words)
             if words[0] == "v":
-                positions.append(numbers[:3])
+                positions.extend(numbers[:3])
         elif words[0] == "f":
             faces += 1
             corners = words[1:]
@@ -328,8 +332,11 @@ def check_obj(path: str | Path, face_normals: bool = False) -> ObjCheck:
                 raise CaptureError(
                     f"{path}: line {number}: a face needs 3 or more corners; fix or remove it"
                 )
+            textured = True
             for corner in corners:
-                for kind, index in zip(("v", "vt", "vn"), corner.split("/"), strict=False):
+                parts = corner.split("/")
+                read = [-1, -1]  # its vertex and texture indices (0-based; -1: none)
+                for k, (kind, index) in enumerate(zip(("v", "vt", "vn"), parts, strict=False)):
                     if index == "" and kind != "v":
                         continue
                     try:
@@ -351,19 +358,19 @@ def check_obj(path: str | Path, face_normals: bool = False) -> ObjCheck:
                             f"{path}: line {number}: face index {i} ({kind}) is out of range "
                             f"(1 to {counts[kind]} at that line); fix the file (export it again)"
                         )
-            indices = [int(c.split("/")[0]) - 1 for c in corners]
-            triangles.append(indices[:3])
-            corners_v += indices
-            for corner in corners:
-                parts = corner.split("/")
-                corners_t.append(int(parts[1]) - 1 if len(parts) > 1 and parts[1] else -1)
-            sizes.append(len(indices))
-            if all(len(c.split("/")) > 1 and c.split("/")[1] != "" for c in corners):
-                faces_with_vt += 1
+                    if k < 2:
+                        read[k] = i - 1
+                corners_v.append(read[0])
+                corners_t.append(read[1])
+                textured = textured and read[1] >= 0
+            triangles.extend(corners_v[-len(corners) :][:3])
+            sizes.append(len(corners))
+            faces_with_vt += textured
     if faces == 0:
         what = "is not an OBJ text file" if not positions else "the OBJ has no faces"
         raise CaptureError(f"{path}: {what}; give a triangle mesh (OBJ text)")
-    p, t = np.asarray(positions, np.float64), np.asarray(triangles)
+    p = np.frombuffer(positions, np.float64).reshape(-1, 3)
+    t = np.frombuffer(triangles, np.int64).reshape(-1, 3)
     area = np.linalg.norm(np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]]), axis=1)
     extent = float(np.ptp(p[t.ravel()], axis=0).max())
     if not np.any(area > 1e-12 * extent**2):
