@@ -117,9 +117,9 @@ class Capture:
 
     def downscaled(self, factor: int) -> Capture:
         """A copy area-averaged by an integer `factor`, any image size (weights become each output
-        pixel's valid share, masks keep pixels more than half covered; see `weights.downscale`);
-        the cameras follow (same field of view, fewer pixels), so a render of the copy is the area
-        average of a render of the original."""
+        pixel's valid share, masks keep pixels covered more than the view's `mask_coverage`; see
+        `weights.downscale`); the cameras follow (same field of view, fewer pixels), so a render
+        of the copy is the area average of a render of the original."""
         if factor == 1:
             return self
         views, cameras = [], []
@@ -132,7 +132,7 @@ class Capture:
             if mask is not None:
                 h, w = mask.shape
                 block = downscale(mask[..., None].astype(np.float32), np.ones((h, w)), factor)[0]
-                mask = block[..., 0] > 0.5
+                mask = block[..., 0] > view.mask_coverage  # its meaning kept (a peer's: any)
             width, height = downscaled_size(view.camera.width, view.camera.height, factor)
             camera = replace(view.camera, width=width, height=height)
             views.append(replace(view, image=image, weight=weight, camera=camera, mask=mask))

@@ -257,7 +257,13 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
 def read_mask(path: str | Path) -> np.ndarray:
     """A boolean object mask from an image file (any channel > 0.5; a mask whose brightest
     value is below 0.5, e.g. stored as codes 0 and 1, at half its brightest)."""
-    pixels = read_image(path)[..., :3]
+    pixels = read_image(path)
+    reader = oiio.ImageInput.open(str(path))  # read above: it opens
+    chosen = colour_channels(list(reader.spec().channelnames))
+    reader.close()
+    # its colour channels, alpha left out: a grey-and-alpha PNG's alpha is 1 on every pixel,
+    # and read as a channel it made the whole image the object
+    pixels = pixels[..., chosen[0]] if not isinstance(chosen, str) else pixels[..., :3]
     top = float(pixels.max()) if pixels.size else 0.0
     return np.any(pixels > (0.5 if top >= 0.5 or top <= 0 else 0.5 * top), axis=-1)
 

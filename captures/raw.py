@@ -36,8 +36,9 @@ class RawImage:
 
     camera_rgb: np.ndarray
     saturated: np.ndarray
-    camera_wb: np.ndarray  # as-shot multipliers (R, G, B), G = 1
+    camera_wb: np.ndarray | None  # as-shot multipliers (R, G, B), G = 1; None: not recorded
     color_matrix: np.ndarray  # white-balanced camera RGB -> linear Rec.709 (3, 3)
+    path: Path | None = None
 
 
 def default_crop(sizes, shape: tuple[int, int]) -> tuple[int, int, int, int] | None:
@@ -90,6 +91,11 @@ def read_raw(path: str | Path) -> RawImage:
             cmatrix = np.asarray(raw.color_matrix, dtype=np.float64)[:, :3]
             rgb_xyz = np.asarray(raw.rgb_xyz_matrix, dtype=np.float64)[:3]
             sizes = raw.sizes
+    except RuntimeError as err:  # rawpy: a linear DNG, sRAW or Foveon file ("not flat")
+        raise CaptureError(
+            f"{path}: not a Bayer mosaic ({err}); develop it to a linear 16-bit TIFF and declare "
+            'encoding = "linear"'
+        ) from None
     except (rawpy.LibRawError, OSError, ValueError) as err:
         raise CaptureError(
             f"{path}: LibRaw cannot decode this RAW file ({type(err).__name__}: {err}); "
@@ -137,18 +143,26 @@ def read_raw(path: str | Path) -> RawImage:
         raise CaptureError(f"{path}: the 2x2 mosaic lacks a colour ({desc!r}); not a Bayer RAW")
     camera_rgb = (sums / counts).astype(np.float32)
 
-    if not np.any(wb) or wb[1] == 0:
-        raise CaptureError(f"{path}: the file has no as-shot white balance; give multipliers")
+    as_shot = None if not np.all(np.isfinite(wb)) or not np.any(wb) or wb[1] == 0 else wb / wb[1]
     if np.any(cmatrix):
         matrix = cmatrix
-    elif np.any(rgb_xyz):  # camera <- XYZ given: invert, then XYZ -> Rec.709
-        from .color import XYZ_TO_REC709
-
-        matrix = XYZ_TO_REC709 @ np.linalg.inv(rgb_xyz)
-        matrix /= matrix.sum(axis=1, keepdims=True)
+    elif np.any(rgb_xyz):
+        matrix = camera_to_rec709(rgb_xyz)
     else:
         raise CaptureError(f"{path}: the file has no colour matrix to map camera RGB to Rec.709")
-    return RawImage(camera_rgb, sat, wb / wb[1], matrix)
+    return RawImage(camera_rgb, sat, as_shot, matrix, path)
+
+
+def camera_to_rec709(rgb_xyz: np.ndarray) -> np.ndarray:
+    """White-balanced camera RGB -> linear Rec.709 from a camera <- XYZ matrix, as LibRaw and
+    dcraw make it: the camera's response to Rec.709 primaries, its rows scaled to sum 1 (white
+    balance makes white (1, 1, 1)), inverted. (Scaling the inverse's rows instead kept greys
+    grey but bent saturated colours: Rec.709 (0.5, 0.1, 0.1) came out (0.405, 0.042, 0.11).)"""
+    from .color import XYZ_TO_REC709
+
+    camera = np.asarray(rgb_xyz, np.float64)[:3] @ np.linalg.inv(XYZ_TO_REC709)
+    camera /= camera.sum(axis=1, keepdims=True)
+    return np.linalg.inv(camera)
 
 
 def develop(raw: RawImage, white_balance: str | np.ndarray = "camera") -> np.ndarray:
@@ -156,6 +170,11 @@ def develop(raw: RawImage, white_balance: str | np.ndarray = "camera") -> np.nda
     then the colour matrix; negative values (out of gamut) are clipped to 0."""
     if isinstance(white_balance, str):
         multipliers = {"camera": raw.camera_wb, "none": np.ones(3)}[white_balance]
+        if multipliers is None:
+            raise CaptureError(
+                f"{raw.path or 'the RAW file'}: the file records no as-shot white balance; set "
+                "white_balance = [r, g, b] in [capture] (multipliers, G = 1)"
+            )
     else:
         multipliers = np.asarray(white_balance, dtype=np.float64)
     balanced = raw.camera_rgb.astype(np.float32) * multipliers.astype(np.float32)

@@ -113,3 +113,54 @@ def test_a_file_too_small_for_its_sensels_is_refused(tmp_path, monkeypatch):
     path = fake_file(tmp_path, monkeypatch, mosaic_of(colors), colors, raw_height=4000)
     with pytest.raises(raw_module.CaptureError, match="holds no usable picture"):
         read_raw(path)
+
+
+def test_a_raw_that_is_not_a_mosaic_is_one_line(tmp_path, monkeypatch):
+    """rawpy raises RuntimeError ("RAW image is not flat") for a linear DNG, sRAW or Foveon
+    file; it escaped as an internal error."""
+
+    class Linear(FakeRaw):
+        @property
+        def raw_colors_visible(self):
+            raise RuntimeError("RAW image is not flat")
+
+        @raw_colors_visible.setter
+        def raw_colors_visible(self, value):
+            pass
+
+    colors = np.tile(RGGB, (5, 7))
+    path = fake_file(tmp_path, monkeypatch, mosaic_of(colors), colors)
+    fake = Linear(mosaic_of(colors), colors, SimpleNamespace(raw_height=10, raw_width=14))
+    monkeypatch.setattr(raw_module.rawpy, "imread", lambda path: fake)
+    with pytest.raises(raw_module.CaptureError, match=r"x\.dng: not a Bayer mosaic .*linear"):
+        read_raw(path)
+
+
+def test_a_raw_without_as_shot_white_balance_takes_given_multipliers(tmp_path, monkeypatch):
+    """A file that records no as-shot white balance was refused outright, though its manifest
+    can give multipliers; now only `white_balance = "camera"` is refused, by name."""
+    colors = np.tile(RGGB, (5, 7))
+    path = fake_file(tmp_path, monkeypatch, mosaic_of(colors), colors)
+    raw_module.rawpy.imread(path).camera_whitebalance = [0.0, 0.0, 0.0, 0.0]
+    image = read_raw(path)
+    assert image.camera_wb is None
+    balanced = develop(image, np.array([0.5, 1.0, 2.0]))
+    np.testing.assert_allclose(balanced[0, 0], [500 / WHITE, 2000 / WHITE, 6000 / WHITE], rtol=1e-5)
+    with pytest.raises(raw_module.CaptureError, match=r"x\.dng: .*no as-shot white balance; set"):
+        develop(image, "camera")
+
+
+def test_the_xyz_fallback_matrix_keeps_saturated_colours():
+    """Where a file has no colour matrix, the camera <- XYZ one is turned into white-balanced
+    camera RGB -> Rec.709 as LibRaw does (rows of the camera's response scaled, then inverted).
+    A camera seeing Rec.709 colours, white balanced, developed: each colour comes back in
+    proportion. (Scaling the inverse's rows kept greys but not (0.5, 0.1, 0.1).)"""
+    from captures.color import XYZ_TO_REC709
+
+    rgb_xyz = np.array([[0.9, 0.2, -0.1], [-0.3, 1.2, 0.1], [0.0, -0.2, 0.9]])  # a camera's
+    response = rgb_xyz @ np.linalg.inv(XYZ_TO_REC709)  # camera RGB of Rec.709 primaries
+    wb = 1.0 / (response @ np.ones(3))
+    matrix = raw_module.camera_to_rec709(rgb_xyz)
+    colours = np.array([[0.5, 0.1, 0.1], [0.1, 0.6, 0.2], [0.3, 0.3, 0.3], [0.05, 0.1, 0.7]])
+    developed = (colours @ response.T * wb) @ matrix.T
+    np.testing.assert_allclose(developed / developed[2, 1], colours / 0.3, rtol=1e-9)
