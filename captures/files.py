@@ -162,11 +162,12 @@ def replace_folder(path: str | Path, new: str | Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def foreign_entries(folder: str | Path, main: str | Path) -> list[str]:
+def foreign_entries(folder: str | Path, main: str | Path, extra: tuple[str, ...] = ()) -> list[str]:
     """The names in `folder` that a tool's output there did not write: anything but its main
-    file `main` (a manifest, an exported material) and the files that file names. `--force`
-    replaces a folder whole, so an output folder holding anything else (a user's scene beside an
-    exported material, a note in a capture) is refused rather than deleted."""
+    file `main` (a manifest, an exported material), the files that file names (names with an
+    extension: a node called `clay` in a material does not make a file `clay` ours) and `extra`.
+    `--force` replaces a folder whole, so an output folder holding anything else (a user's scene
+    beside an exported material, a note in a capture) is refused rather than deleted."""
     folder, main = Path(folder), Path(main)
     try:
         text = main.read_text(errors="replace")
@@ -176,14 +177,17 @@ def foreign_entries(folder: str | Path, main: str | Path) -> list[str]:
     def named(name: str) -> bool:  # as a whole file name, not inside another ("a.exr", "data.exr")
         return re.search(rf"(?<![\w.-]){re.escape(name)}(?![\w.-])", text) is not None
 
-    ours = {main.name} | {p.name for p in folder.iterdir() if p.is_file() and named(p.name)}
+    written = {p.name for p in folder.iterdir() if p.is_file() and "." in p.name and named(p.name)}
+    ours = {main.name, *extra} | written
     return sorted(p.name for p in folder.iterdir() if p.name not in ours)
 
 
-def refuse_foreign(folder: str | Path, main: str | Path, tool: str) -> None:
+def refuse_foreign(
+    folder: str | Path, main: str | Path, tool: str, extra: tuple[str, ...] = ()
+) -> None:
     """Raise `InputError` when `folder`, which `--force` would replace whole, holds anything
     `tool`'s earlier output did not write there (`foreign_entries`)."""
-    foreign = foreign_entries(folder, main)
+    foreign = foreign_entries(folder, main, extra)
     if foreign:
         shown = listing(foreign)
         raise InputError(

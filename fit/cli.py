@@ -848,7 +848,7 @@ def export(
     from .export import TARGETS, check_output, inputs_of
     from .material import load_preset
 
-    name = preset.parent.name if preset.stem == "preset" else preset.stem
+    name = preset.resolve().parent.name if preset.stem == "preset" else preset.stem
     out = out or Path("out") / f"{name}-{to}{'-portable' if portable else ''}"
     try:
         if to not in TARGETS:

@@ -24,6 +24,9 @@ BAKE_SIZE = 1024
 #: The main file each target writes: a folder holding one of them is an earlier export, the only
 #: kind of non-empty folder `--force` replaces.
 MAIN_FILES = ("material.xml", "material.mtlx", "material.usda")
+#: The file every export writes beside its main file: with it, a folder is an export of
+#: layerfit's (a user's own `material.xml` and the textures it names are not one).
+MARKER = ".layerfit-export"
 
 
 def check_output(out: Path, force: bool, inputs=()) -> None:
@@ -46,7 +49,13 @@ def check_output(out: Path, force: bool, inputs=()) -> None:
             f"{' / '.join(MAIN_FILES)}); --force replaces only an earlier export: choose "
             "another path"
         )
-    refuse_foreign(out, main, "the earlier export")
+    if not (out / MARKER).is_file():
+        raise ConfigError(
+            f"--out {out}: holds {main.name} but no {MARKER}, which every layerfit export "
+            "writes: it is not replaced (a material of your own, or an export of a layerfit "
+            "before 2026-12-02: delete it yourself); choose another path"
+        )
+    refuse_foreign(out, main, "the earlier export", extra=(MARKER,))
 
 
 def inputs_of(preset: Preset) -> list[Path]:
@@ -98,6 +107,8 @@ def export(
             path = materialx.export(material, folder, size, progress)
         else:
             path = usd.export(material, folder, size, progress)
+        kind = f"{to} (portable)" if portable else to
+        (folder / MARKER).write_text(f"layerfit export: {kind}, {path.name}\n", encoding="utf-8")
         name = path.name
     return out / name
 
@@ -105,6 +116,7 @@ def export(
 __all__ = [
     "BAKE_SIZE",
     "MAIN_FILES",
+    "MARKER",
     "TARGETS",
     "check_output",
     "export",

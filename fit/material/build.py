@@ -41,6 +41,11 @@ from .keys import key, parse_key
 
 log = logging.getLogger(__name__)
 
+#: Names a layer may not take: the stack's keys (its `layers` list, a layer's `<name>_mask`, the
+#: plugin's `type` and `id`) and the design keys' own words. A layer named `layers` or `type`, or
+#: `glaze_mask` beside `glaze`, overwrote a key of the stack: its render and exports failed.
+RESERVED = ("bump", "mask", "lights", "environment", "gain", "layers", "type", "id")
+
 
 @dataclass(frozen=True)
 class Param:
@@ -317,8 +322,12 @@ def build_material(
             raise b.error(f"[[{where}.layers]] number {i}", "needs a name")
         layer = dict(entry)
         name, mask = layer.pop("name"), layer.pop("mask", None)
-        if not name.isidentifier() or name in ("bump", "mask", "lights", "environment", "gain"):
-            raise b.error(f"{at}.name", f"{name!r} must be an identifier, not a reserved word")
+        if not name.isidentifier() or name in RESERVED or name.endswith("_mask"):
+            raise b.error(
+                f"{at}.name",
+                f"{name!r} must be an identifier, not a reserved word ({', '.join(RESERVED)}) "
+                "nor end in _mask (the stack's own keys)",
+            )
         if name in [n for n, *_ in built]:
             raise b.error(f"{at}.name", f"{name!r} is used twice")
         if not _enabled(b, layer, f"{where}.{name}"):

@@ -200,7 +200,7 @@ def test_materialx_single_glaze(tmp_path):
     mx.readFromXmlFile(doc, str(path))
     (surface,) = [n for n in doc.getNodes() if n.getCategory() == "open_pbr_surface"]
     assert surface.getInputValue("specular_roughness") == pytest.approx(ggx_roughness(0.0625), 1e-5)
-    assert sorted(p.name for p in path.parent.iterdir()) == ["material.mtlx"]
+    assert sorted(p.name for p in path.parent.iterdir()) == [".layerfit-export", "material.mtlx"]
 
 
 def eon_preset(folder: Path, kind: str = "glaze") -> Path:
@@ -347,7 +347,7 @@ def test_cli_exports_and_refuses_to_overwrite(tmp_path):
     assert again.exit_code == 2 and "exists and is not empty; pass --force" in again.output
     forced = cli("export", preset, "--to", "materialx", "--out", out, "--force")
     assert forced.exit_code == 0, forced.output
-    assert sorted(p.name for p in out.iterdir()) == ["material.mtlx"]
+    assert sorted(p.name for p in out.iterdir()) == [".layerfit-export", "material.mtlx"]
     assert leftovers(tmp_path) == []
     # a user's files beside an earlier export: `--force` would delete them with the folder
     (out / "scene.xml").write_text("<scene/>")
@@ -355,7 +355,45 @@ def test_cli_exports_and_refuses_to_overwrite(tmp_path):
     kept = cli("export", preset, "--to", "mitsuba", "--out", out, "--force")
     assert kept.exit_code == 2, kept.output
     assert "also holds meshes, scene.xml, which the earlier export did not write" in kept.output
-    assert sorted(p.name for p in out.iterdir()) == ["material.mtlx", "meshes", "scene.xml"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        ".layerfit-export",
+        "material.mtlx",
+        "meshes",
+        "scene.xml",
+    ]
+    # a file without an extension named like a node of the material (`material`, a layer's
+    # name) is not one the export wrote: it was deleted with the folder
+    (out / "scene.xml").unlink(), (out / "meshes").rmdir()
+    (out / "material").write_text("notes")
+    kept = cli("export", preset, "--to", "usd", "--out", out, "--force")
+    assert kept.exit_code == 2 and "also holds material," in kept.output, kept.output
+    assert (out / "material").read_text() == "notes"
+
+
+def test_cli_force_never_replaces_a_users_own_material_folder(tmp_path):
+    """A user's hand-written material.xml and the texture it names looked like an earlier
+    export, and `--force` replaced the folder; an export writes a marker, and without it the
+    folder is refused."""
+    preset = sphere_preset(tmp_path)
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "material.xml").write_text('<bsdf type="diffuse"><texture filename="wood.png"/></bsdf>')
+    (mine / "wood.png").write_bytes(b"png")
+    result = cli("export", preset, "--to", "usd", "--out", mine, "--force")
+    assert result.exit_code == 2 and "no .layerfit-export" in result.output, result.output
+    assert sorted(p.name for p in mine.iterdir()) == ["material.xml", "wood.png"]
+
+
+def test_cli_default_out_of_a_bare_preset_toml(tmp_path, monkeypatch):
+    """`layerfit export preset.toml` in a run folder names the export after that folder (it
+    wrote out/-usd: the relative path's parent has no name)."""
+    run = tmp_path / "run7"
+    run.mkdir()
+    save_preset(load_render_config(SPHERE).material, run / "preset.toml")
+    monkeypatch.chdir(run)
+    result = cli("export", "preset.toml", "--to", "usd")
+    assert result.exit_code == 0, result.output
+    assert (run / "out" / "run7-usd" / "material.usda").is_file()
 
 
 def test_cli_force_replaces_only_an_export(tmp_path, monkeypatch):
@@ -424,6 +462,7 @@ def test_an_interrupted_export_leaves_nothing(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "material.usda").write_text("an earlier export")
+    (out / ".layerfit-export").write_text("layerfit export: usd, material.usda\n")
 
     def interrupt(done, total):
         if done == 2:
@@ -431,7 +470,7 @@ def test_an_interrupted_export_leaves_nothing(tmp_path):
 
     with pytest.raises(KeyboardInterrupt):
         export(preset, "materialx", out, force=True, size=16, progress=interrupt)
-    assert sorted(p.name for p in out.iterdir()) == ["material.usda"]
+    assert sorted(p.name for p in out.iterdir()) == [".layerfit-export", "material.usda"]
     assert leftovers(tmp_path) == []
 
 

@@ -240,3 +240,19 @@ def test_a_stack_of_one_layer_checks_its_bump_and_warns_it_is_ignored(caplog):
     for bad in (-1.0, 0.5, "thick"):  # outside [0, 0.01], or not a number: refused by name
         with pytest.raises(ConfigError, match=r"cup\.toml: material"):
             build_material(stack(bad), "cup.toml")
+
+
+@pytest.mark.parametrize("name", ["layers", "type", "id", "glaze_mask", "bump"])
+def test_a_layer_named_as_a_key_of_the_stack_is_refused(name):
+    """A layer named `layers`, `type` or `id`, or `glaze_mask` beside `glaze`, overwrote a key
+    of the stack's dict: its render and every export failed with an internal error."""
+    table = {
+        "type": "layered",
+        "layers": [
+            {"name": "clay", "type": "oren_nayar"},
+            {"name": "glaze", "type": "glaze", "mask": {"threshold": 0.5}},
+            {"name": name, "type": "oren_nayar", "mask": {"threshold": 0.5}},
+        ],
+    }
+    with pytest.raises(ConfigError, match=rf"cup\.toml: material\.layers\[2\]\.name: '{name}'"):
+        build_material(table, "cup.toml")
