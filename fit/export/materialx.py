@@ -25,6 +25,7 @@ the whole specular lobe by F(n.v), OpenPBR by F(v.h)) and Schlick's approximatio
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 from ..errors import ConfigError
@@ -43,6 +44,22 @@ def standard_libraries():
     lib = mx.createDocument()
     mx.loadLibraries(mx.getDefaultDataLibraryFolders(), mx.getDefaultDataSearchPath(), lib)
     return lib
+
+
+@functools.cache
+def _library_names() -> frozenset[str]:
+    """The names of the standard libraries' elements (type and node definitions...)."""
+    return frozenset(child.getName() for child in standard_libraries().getChildren())
+
+
+def child_name(doc, wanted: str) -> str:
+    """A layer's node name, free in `doc` and in the standard libraries it validates against: a
+    layer named `material`, `float`, `color3` or `BSDF` took the name of a library element, and
+    the document failed validation ("Invalid port connection")."""
+    name = wanted
+    while name in _library_names():
+        name += "_"
+    return doc.createValidChildName(name)
 
 
 def check_document(doc) -> None:
@@ -69,10 +86,10 @@ def export(material: Material, folder: Path, size: int, progress: Progress | Non
         if shader is None:
             shader = surface
             continue
-        mask = doc.addNode("image", doc.createValidChildName(f"{layer.name}_mask"), "float")
+        mask = doc.addNode("image", child_name(doc, f"{layer.name}_mask"), "float")
         file = write_exr(folder / f"{layer.name}.mask.exr", layer.mask)
         mask.setInputValue("file", file, "filename")
-        mix = doc.addNode("mix", doc.createValidChildName(f"{layer.name}_over"), "surfaceshader")
+        mix = doc.addNode("mix", child_name(doc, f"{layer.name}_over"), "surfaceshader")
         mix.addInput("fg", "surfaceshader").setConnectedNode(surface)
         mix.addInput("bg", "surfaceshader").setConnectedNode(shader)
         mix.addInput("mix", "float").setConnectedNode(mask)
@@ -90,10 +107,10 @@ def _surface(doc, layer: Layer, folder: Path):
     import MaterialX as mx
 
     diffuse_roughness, scale = as_eon(layer.sigma, layer.diffuse)
-    node = doc.addNode("open_pbr_surface", doc.createValidChildName(layer.name), "surfaceshader")
+    node = doc.addNode("open_pbr_surface", child_name(doc, layer.name), "surfaceshader")
     if layer.colour_map is not None:
         name = write_exr(folder / f"{layer.name}.colour.exr", layer.colour_map * scale)
-        image = doc.addNode("image", doc.createValidChildName(f"{layer.name}_colour"), "color3")
+        image = doc.addNode("image", child_name(doc, f"{layer.name}_colour"), "color3")
         image.setInputValue("file", name, "filename").setColorSpace("lin_rec709")
         node.addInput("base_color", "color3").setConnectedNode(image)
     else:

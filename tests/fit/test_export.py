@@ -488,3 +488,24 @@ def test_cli_ctrl_c_is_one_line(tmp_path, monkeypatch):
     (line,) = [x for x in result.output.splitlines() if "interrupted" in x]
     assert "interrupted: nothing written" in line and "Traceback" not in result.output
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("name", ["material", "float", "BSDF"])
+def test_materialx_layer_named_as_a_library_element(tmp_path, name):
+    """A layer named like an element of MaterialX's standard libraries (a type, a definition)
+    made the document fail validation; its nodes now take a free name."""
+    import MaterialX as mx
+
+    table = {
+        "type": "layered",
+        "layers": [
+            {"name": "clay", "type": "oren_nayar"},
+            {"name": name, "type": "glaze", "mask": {"threshold": 0.5, "octaves": 1}},
+        ],
+    }
+    preset = save_preset(build_material(table, tmp_path / "m.toml"), tmp_path / "m.toml")
+    path = export(preset, "materialx", tmp_path / "out", size=8)
+    doc = mx.createDocument()
+    mx.readFromXmlFile(doc, str(path))
+    surfaces = [n.getName() for n in doc.getNodes() if n.getCategory() == "open_pbr_surface"]
+    assert sorted(surfaces) == sorted(["clay", f"{name}_"])
