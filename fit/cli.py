@@ -839,7 +839,12 @@ def export(
         bool, typer.Option("--force", help="Replace an existing non-empty output folder.")
     ] = False,
     size: Annotated[
-        int, typer.Option(min=1, max=16384, help="Texels per side of baked images.")
+        int,
+        typer.Option(
+            min=1,
+            max=8192,
+            help="Texels per side of baked images (8192: about 0.8 GB per baked colour).",
+        ),
     ] = 1024,
     variant: VariantOption = None,
 ) -> None:

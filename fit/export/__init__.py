@@ -21,6 +21,9 @@ from .bake import Progress
 TARGETS = ("mitsuba", "materialx", "usd")
 #: Texels per side of baked images by default (the cup's finest fbm octave: ~5 texels a cell).
 BAKE_SIZE = 1024
+#: The largest: a baked colour is size^2 x 12 bytes in memory (8192: 0.8 GB; the cup bakes up to
+#: five images, its masks a third of that each).
+MAX_BAKE_SIZE = 8192
 #: The main file each target writes: a folder holding one of them is an earlier export, the only
 #: kind of non-empty folder `--force` replaces.
 MAIN_FILES = ("material.xml", "material.mtlx", "material.usda")
@@ -93,8 +96,8 @@ def export(
         raise ConfigError(f"--to {to!r}: choose one of {', '.join(TARGETS)}")
     if portable and to != "mitsuba":
         raise ConfigError(f"--portable: applies to --to mitsuba only (got --to {to})")
-    if size < 1:
-        raise ConfigError(f"--size {size}: must be a positive number of texels")
+    if not 1 <= size <= MAX_BAKE_SIZE:
+        raise ConfigError(f"--size {size}: give texels per side from 1 to {MAX_BAKE_SIZE}")
     if not isinstance(preset, Preset):
         preset = load_preset(preset)
     material = preset.material
@@ -117,6 +120,7 @@ __all__ = [
     "BAKE_SIZE",
     "MAIN_FILES",
     "MARKER",
+    "MAX_BAKE_SIZE",
     "TARGETS",
     "check_output",
     "export",

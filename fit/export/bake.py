@@ -78,24 +78,16 @@ class Plan:
         return np.broadcast_to(np.float32(layer.colour), (self.size, self.size, 3))
 
 
-def _grid(size: int):
-    """A surface interaction per texel centre of a size x size UV grid (bitmap layout)."""
-    import drjit as dr
-    import mitsuba as mi
-
-    t = (np.arange(size) + 0.5) / size
-    uu, vv = np.meshgrid(t, t)
-    si = dr.zeros(mi.SurfaceInteraction3f, uu.size)
-    si.uv = mi.Point2f(uu.ravel().astype(np.float32), vv.ravel().astype(np.float32))
-    si.wi = mi.Vector3f(0, 0, 1)
-    return si
-
-
 def _bake_rgb(plugin, size: int, glaze: bool) -> np.ndarray:
     """A loaded glaze's pigment (noise applied) or an RGB texture, as a (size, size, 3) image."""
-    si = _grid(size)
-    values = plugin.eval_pigment(si) if glaze else plugin.eval(si)
-    return np.asarray(values, np.float32).T.reshape(size, size, 3)  # Color3f: (3, N)
+    from ..render.bake import uv_bands
+
+    out = np.empty((size, size, 3), np.float32)
+    for first, si in uv_bands(size, size):
+        values = plugin.eval_pigment(si) if glaze else plugin.eval(si)
+        band = np.asarray(values, np.float32).T.reshape(-1, size, 3)  # Color3f: (3, N)
+        out[first : first + len(band)] = band
+    return out
 
 
 def layer_dicts(material: Material) -> list[tuple[str, str, dict, dict | None]]:

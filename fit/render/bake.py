@@ -6,16 +6,33 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+#: Texels evaluated at once: a band of rows this large, then the next (a 16384-texel square in
+#: one go held a surface interaction per texel, tens of GB).
+BAND_TEXELS = 1 << 20
+
+
+def uv_bands(width: int, height: int):
+    """(first row, surface interactions at the texel centres of rows from it) of a width x
+    height UV grid in bands of at most `BAND_TEXELS`, laid out as Mitsuba's `bitmap` reads an
+    image (row r at v = (r + 0.5) / height)."""
+    rows = max(1, BAND_TEXELS // max(width, 1))
+    u = ((np.arange(width) + 0.5) / width).astype(np.float32)
+    for first in range(0, height, rows):
+        v = ((np.arange(first, min(first + rows, height)) + 0.5) / height).astype(np.float32)
+        uu, vv = np.meshgrid(u, v)
+        si = dr.zeros(mi.SurfaceInteraction3f, uu.size)
+        si.uv = mi.Point2f(uu.ravel(), vv.ravel())
+        si.wi = mi.Vector3f(0, 0, 1)
+        yield first, si
+
 
 def bake_texture(texture: dict, width: int = 256, height: int = 256) -> np.ndarray:
     """The (height, width) values of a scalar texture dict (e.g. a layer's `fbm` mask) at the
     texel centres of a UV grid, laid out as Mitsuba's `bitmap` reads an image (row r at
     v = (r + 0.5) / height): written as a bitmap, the baked image is the texture again."""
     loaded = mi.load_dict(texture)
-    u = (np.arange(width) + 0.5) / width
-    v = (np.arange(height) + 0.5) / height
-    uu, vv = np.meshgrid(u, v)
-    si = dr.zeros(mi.SurfaceInteraction3f, uu.size)
-    si.uv = mi.Point2f(uu.ravel().astype(np.float32), vv.ravel().astype(np.float32))
-    values = loaded.eval_1(si)
-    return np.asarray(values, np.float32).reshape(height, width)
+    out = np.empty((height, width), np.float32)
+    for first, si in uv_bands(width, height):
+        values = np.asarray(loaded.eval_1(si), np.float32).reshape(-1, width)
+        out[first : first + len(values)] = values
+    return out

@@ -19,6 +19,7 @@ from typer.testing import CliRunner
 from captures.images import read_image
 from fit.cli import app
 from fit.config import load_render_config
+from fit.errors import ConfigError
 from fit.export import export
 from fit.export.bake import plan
 from fit.export.mapping import (
@@ -509,3 +510,25 @@ def test_materialx_layer_named_as_a_library_element(tmp_path, name):
     mx.readFromXmlFile(doc, str(path))
     surfaces = [n.getName() for n in doc.getNodes() if n.getCategory() == "open_pbr_surface"]
     assert sorted(surfaces) == sorted(["clay", f"{name}_"])
+
+
+def test_baking_in_bands_is_baking_at_once(tmp_path, monkeypatch):
+    """Masks and colours are evaluated a band of rows at a time (a 16384-texel square at once
+    held a surface interaction per texel: tens of GB); the bands change nothing, also where a
+    band ends inside a row's worth. The largest size is refused before any work."""
+    import fit.render.bake as render_bake
+
+    material = build_material(tomllib.loads(CUP.read_text())["material"], CUP)
+    whole = plan(material, 24)
+    monkeypatch.setattr(render_bake, "BAND_TEXELS", 100)  # 4 rows of 24 a band, 6 bands
+    banded = plan(material, 24)
+    for a, b in zip(whole.layers, banded.layers, strict=True):
+        for field in ("mask", "colour_map"):
+            x, y = getattr(a, field), getattr(b, field)
+            assert (x is None) == (y is None)
+            if x is not None:
+                np.testing.assert_array_equal(x, y)
+    assert any(layer.colour_map is not None for layer in whole.layers)
+    with pytest.raises(ConfigError, match="--size 8193: give texels per side from 1 to 8192"):
+        export(cup_preset(tmp_path), "usd", tmp_path / "out", size=8193)
+    assert not (tmp_path / "out").exists()
