@@ -88,7 +88,8 @@ def _same_fit(summary: dict, job: Job) -> bool:
             return False
         if job.seed is not None:
             return summary.get("seed") == job.seed
-        return summary.get("seed") == load_fit_config(job.config).seed
+        # with the job's capture: a template config's own capture need not exist
+        return summary.get("seed") == load_fit_config(job.config, job.capture).seed
     except (OSError, ValueError, TypeError, InputError):
         return False
 
@@ -256,7 +257,8 @@ def write_index(batch: Batch, entries: list[dict]) -> list[Path]:
     out = batch.out
     stamp = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
     counts = {s: sum(e["status"] == s for e in entries) for s in _STATUSES}
-    doc = {"spec": str(batch.path), "updated": stamp, "counts": counts, "fits": entries}
+    # the spec's absolute path: a later run from another folder recognises its own index
+    doc = {"spec": str(batch.path.resolve()), "updated": stamp, "counts": counts, "fits": entries}
     paths = [
         write_text(out / "index.json", json.dumps(_finite(doc), indent=2, allow_nan=False)),
         write_text(out / "index.csv", _csv(entries)),

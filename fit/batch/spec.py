@@ -63,8 +63,15 @@ class Batch:
 
 
 def capture_name(path: Path) -> str:
-    """A capture's short name: its folder's (a manifest or a peer `scene.json` names its folder)."""
-    return path.parent.name if path.is_file() else path.name
+    """A capture's short name: its folder's where a `capture.toml` or a peer `scene.json` names
+    it, a manifest's own stem otherwise (`caps/bowl.toml` and `caps/vase.toml` shared `caps`)."""
+    if not path.is_file():
+        return path.name
+    return path.parent.name if path.name in ("capture.toml", "scene.json") else path.stem
+
+
+def _job_text(config: Path, capture: Path | None) -> str:
+    return str(config) if capture is None else f"{config} on {capture}"
 
 
 def _slug(text: str) -> str:
@@ -90,11 +97,13 @@ def load_batch(path: str | Path) -> Batch:
             raise ConfigError(f"{path}: {key}: {twice} is listed twice; list each once")
     try:
         spec.kernel_cache.format(host="node")
-    except (KeyError, IndexError, ValueError):
+    except (KeyError, IndexError, ValueError, AttributeError, TypeError):
         raise ConfigError(
             f"{path}: kernel_cache = {spec.kernel_cache!r}: only {{host}} may be filled in "
             "(the node's host name); remove the other braces"
         ) from None
+    if "\0" in str(spec.out):
+        raise ConfigError(f"{path}: out = {str(spec.out)!r} holds a NUL character; give a folder")
     out = (path.parent / spec.out).resolve()
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{path}: out = {str(spec.out)!r} is a file; give a folder")
@@ -113,9 +122,10 @@ def load_batch(path: str | Path) -> Batch:
                 if name in names:
                     raise ConfigError(
                         f"{path}: two fits would share the run folder {name!r} ({names[name]} "
-                        f"and {config}); give configs and captures distinct names"
+                        f"and {_job_text(config, capture)}); give configs and captures distinct "
+                        "names"
                     )
-                names[name] = config
+                names[name] = _job_text(config, capture)
                 jobs.append(Job(name, config, capture, seed, out / name))
     _check_out(path, spec, out, set(names))
     _check_configs(path, spec)

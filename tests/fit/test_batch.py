@@ -384,3 +384,49 @@ def test_a_run_folder_that_is_not_a_run_is_said_for_a_batch(tmp_path, monkeypatc
     monkeypatch.delenv("DRJIT_CACHE_DIR", raising=False)
     with pytest.raises(InputError, match=r"kernel_cache = .*afile"):
         prepare_worker(1, None, str(tmp_path / "afile" / "{host}"))
+
+
+def test_a_batch_is_found_again_from_another_folder_and_a_template_config(tmp_path, monkeypatch):
+    """The index kept the spec's path as typed: run again from another folder, the batch was
+    refused as "another batch's". A config whose own capture is a template (absent) made its
+    finished fit in the spec's captures run again every time."""
+    from fit.batch.runner import finished, write_index
+
+    shelf = tmp_path / "shelf"
+    (shelf / "c1").mkdir(parents=True)
+    (shelf / "fit.toml").write_text(TINY.replace('capture = "cap"', 'capture = "template"'))
+    (shelf / "spec.toml").write_text('configs = ["fit.toml"]\ncaptures = ["c1"]\n')
+    monkeypatch.chdir(shelf)
+    batch = load_batch("spec.toml")
+    write_index(batch, [])
+    monkeypatch.chdir(tmp_path)
+    (job,) = load_batch("shelf/spec.toml").jobs  # was: holds another batch's index
+    job.out.mkdir(parents=True)
+    summary = {"interrupted": False, "values": {}, "error": {}, "seed": 0}
+    summary |= {"config": str(job.config), "capture": str(job.capture)}
+    (job.out / "summary.json").write_text(json.dumps(summary))
+    assert finished(job.out, job) is not None
+
+
+def test_batch_spec_names_for_manifests_and_odd_values(tmp_path):
+    """Captures given as manifest files are named by their stems (`caps/bowl.toml` and
+    `caps/vase.toml` both were `caps`, and refused); a kernel cache with a field or index of
+    {host}, and an out with a NUL, are one line (they were internal errors)."""
+    from captures.errors import InputError
+
+    (tmp_path / "caps").mkdir()
+    for name in ("bowl", "vase"):  # manifests beside each other (their fits open them)
+        (tmp_path / "caps" / f"{name}.toml").write_text("[capture]\n")
+    (tmp_path / "cap").mkdir()
+    (tmp_path / "fit.toml").write_text(TINY)
+    spec = tmp_path / "batch.toml"
+    spec.write_text('configs = ["fit.toml"]\ncaptures = ["caps/bowl.toml", "caps/vase.toml"]\n')
+    assert [j.name for j in load_batch(spec).jobs] == ["fit__bowl", "fit__vase"]
+    for text, message in (
+        ('configs = ["fit.toml"]\nkernel_cache = "~/{host.x}"\n', "only {host} may be filled"),
+        ('configs = ["fit.toml"]\nkernel_cache = "~/{host[x]}"\n', "only {host} may be filled"),
+        ('configs = ["fit.toml"]\nout = "a\\u0000b"\n', "holds a NUL character"),
+    ):
+        spec.write_text(text)
+        with pytest.raises(InputError, match=re.escape(message)):
+            load_batch(spec)
