@@ -135,6 +135,34 @@ def default_schedule(free: list[str]) -> tuple[Phase, ...]:
     )
 
 
+def _phase_result(result: Result) -> dict:
+    """What the uncertainty takes of a phase's result, for its end's checkpoint: its loss and
+    its averaged tail's variance and gradients (a run stopped after the last phase, in its
+    uncertainty or its files, resumed with the loss NaN and the sd without the tail's noise)."""
+    out: dict = {"last_loss": float(result.loss)}
+    if result.tail_variance is not None:
+        out["last_tail_variance"] = np.asarray(result.tail_variance, np.float64)
+    if result.tail_gradients is not None:
+        out["last_tail_u"], out["last_tail_grad"] = (
+            np.asarray(x, np.float64) for x in result.tail_gradients
+        )
+    return out
+
+
+def _restore_phase_result(result: Result, saved: dict, history: list) -> None:
+    """The last phase's loss and tail from its end's checkpoint (`_phase_result`); from a
+    checkpoint without them (an older layerfit), the loss from the history."""
+    loss = saved.get("last_loss")
+    result.loss = float(loss) if loss is not None else float(history[-1] if history else "nan")
+    if "last_tail_variance" in saved:
+        result.tail_variance = np.asarray(saved["last_tail_variance"], np.float64)
+    if "last_tail_u" in saved and "last_tail_grad" in saved:
+        result.tail_gradients = (
+            np.asarray(saved["last_tail_u"], np.float64),
+            np.asarray(saved["last_tail_grad"], np.float64),
+        )
+
+
 def solve(
     solver: str,
     problem: Problem,
@@ -203,6 +231,8 @@ def run_schedule(
             for k, report in enumerate(reports[:first]):
                 progress(k, phases[k].steps, report.loss)
     result = Result(problem.values(u), u, float("nan"), 0)
+    if saved is not None and first == len(phases):  # stopped after the last phase's end
+        _restore_phase_result(result, saved, history)
     for k in range(first, len(phases)):
         phase = phases[k]
         report = (lambda i, value, k=k: progress(k, i, value)) if progress else None
@@ -244,6 +274,7 @@ def run_schedule(
                 "history_before": list(history),
                 "ends": list(ends),
                 "reports": [r.as_dict() for r in reports],
+                **_phase_result(result),
             }
             checkpoint.flush()
             if checkpoint.stop:

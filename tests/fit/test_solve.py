@@ -985,6 +985,39 @@ def test_a_resumed_schedule_shows_its_finished_phases(problem, tmp_path):
     assert 0 < again.elapsed_before <= worked
 
 
+def test_a_schedule_stopped_after_its_last_phase_resumes_with_its_loss_and_tail(
+    problem, tmp_path, monkeypatch
+):
+    """Stopped after the last phase's end (in the uncertainty, or writing the run folder), a
+    resumed fit ran no phase and reported the loss NaN and an sd without the averaged tail's
+    noise (smaller than the uninterrupted run's). Its end's checkpoint now keeps both."""
+    import fit.solvers.schedule as schedule_module
+    from fit.solvers import Checkpoint
+
+    phases = (Phase(solver="gn", steps=8, spp=2, jacobian_spp=4, refresh=4, average=1.0),)
+    start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.2, "glaze.ior": 1.3}
+    whole = run_schedule(problem, start, phases, 0, None, 2)
+    real = schedule_module.uncertainty
+
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(schedule_module, "uncertainty", stop)
+    checkpoint = Checkpoint(tmp_path / "checkpoint.npz", interval=1e9)
+    with pytest.raises(KeyboardInterrupt):
+        run_schedule(problem, start, phases, 0, None, 2, checkpoint)
+    monkeypatch.setattr(schedule_module, "uncertainty", real)
+    again = Checkpoint(tmp_path / "checkpoint.npz", interval=1e9)
+    resumed = run_schedule(problem, start, phases, 0, None, 2, again, resume=True)
+    assert whole.tail_variance is not None and whole.tail_gradients is not None
+    assert resumed.loss == pytest.approx(whole.loss, rel=1e-6)
+    np.testing.assert_allclose(resumed.tail_variance, whole.tail_variance, rtol=1e-5)
+    for a, b in zip(resumed.tail_gradients, whole.tail_gradients, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+    for key in whole.std:
+        np.testing.assert_allclose(resumed.std[key], whole.std[key], rtol=1e-4)
+
+
 def test_an_undetermined_direction_gets_more_samples_before_it_is_reported(problem, monkeypatch):
     """Where the uncertainty's two Jacobians leave a direction undetermined (their cross product
     not positive: noise), each is averaged with one more render of its own before an infinite sd
