@@ -89,6 +89,11 @@ def check_output(out: Path, cfg: FitConfig, resume: bool, force: bool) -> None:
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out}: is a file; give a folder")
     inputs = [cfg.path, Path(cfg.capture), *cfg.material.texture_files().values()]
+    from ..material.preset import read_toml
+
+    preset = read_toml(Path(cfg.path)).get("material")
+    if isinstance(preset, str):  # a starting preset (a run's preset.toml): --force replaced it
+        inputs.append(Path(cfg.path).parent / preset)
     inputs = [Path(p).resolve() for p in inputs]
     if any(p == out.resolve() or p.is_relative_to(out.resolve()) for p in inputs):
         raise InputError(f"--out {out}: holds the fit's inputs; choose another folder")
@@ -166,7 +171,7 @@ def check_truth(capture: Capture, free: list[Free], path, material=None) -> None
             log.warning(message)
             capture.warnings.append(message)  # in the summary and the report too
         known = sorted(material.params)
-        unknown = [k for k in capture.truth if k not in known and not parse_key(k).emitter]
+        unknown = [k for k in capture.truth if k not in known and not _emitter_key(path, k)]
         others = []
         for name in unknown:
             near = difflib.get_close_matches(name, known, n=1, cutoff=0.8)
@@ -192,6 +197,18 @@ def check_truth(capture: Capture, free: list[Free], path, material=None) -> None
             f.spec.check(value, f"{path}: truth.{f.key}")
         except ValueError as err:
             raise CaptureError(str(err)) from None
+
+
+def _emitter_key(path, key: str) -> bool:
+    """Whether a truth key names an emitter's value; a key no parameter can have is named (a
+    `glaze.base color` was an internal error)."""
+    try:
+        return parse_key(key).emitter
+    except KeyError:
+        raise CaptureError(
+            f"{path}: truth.{key}: not a parameter key (layer.parameter, e.g. glaze.roughness); "
+            "fix or remove it"
+        ) from None
 
 
 def fit_identity(prepared: Prepared, cfg: FitConfig) -> dict:
@@ -541,9 +558,9 @@ def _summary(cfg, capture, held, start, result, wall, panels, interrupted) -> di
             error = np.asarray(value, float) - np.asarray(truth[key], float)
             errors[key] = error.tolist()
             std = (result.std or {}).get(key)
-            if std is not None:  # an undetermined parameter (infinite sd) has no ratio
+            if std is not None:  # an undetermined (infinite) or zero sd gives no ratio
                 sd = np.asarray(std, float)
-                ratio = np.where(np.isfinite(sd), error / np.maximum(sd, 1e-30), np.nan)
+                ratio = np.where(np.isfinite(sd) & (sd > 0), error / np.maximum(sd, 1e-30), np.nan)
                 z[key] = ratio.tolist()
     return {
         "config": str(Path(cfg.path).resolve()),

@@ -174,7 +174,7 @@ def _parameter_rows(summary: dict) -> list[tuple[str, list[str]]]:
         err, sd, ratio = _array(error.get(key)), _array(std.get(key)), None
         if err is not None and sd is not None and err.shape == sd.shape:
             with np.errstate(divide="ignore", invalid="ignore"):
-                ratio = np.where(sd > 0, err / sd, np.nan)
+                ratio = np.where(np.isfinite(sd) & (sd > 0), err / sd, np.nan)  # as summary's
         off = ratio is not None and bool(np.any(np.abs(ratio) > 3))
         if ratio is not None and np.all(np.isnan(ratio)):
             ratio = None

@@ -1575,6 +1575,59 @@ def test_a_truth_typo_is_a_warning_not_silence(base, tmp_path, caplog):
     assert not [r for r in caplog.records if "truth" in r.getMessage()]
 
 
+def test_a_truth_key_no_parameter_can_have_is_named(base, tmp_path):
+    """`"glaze.base color"` in `[truth]` was an internal error (KeyError) in the fit."""
+    from captures import CaptureError
+    from fit.commands.fit import prepare
+    from fit.config import load_fit_config
+
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    edit(work / "cap" / "capture.toml", '"glaze.roughness" =', '"glaze.base color" =')
+    with pytest.raises(CaptureError, match=r"truth\.glaze\.base color: not a parameter key"):
+        prepare(load_fit_config(work / "fit.toml"))
+
+
+def test_force_never_replaces_the_fits_starting_preset(base, tmp_path):
+    """A fit starting from a run's preset.toml, written with --force into that run folder,
+    replaced the preset it started from; it is an input like the config and the capture."""
+    from captures import InputError
+    from fit.commands.fit import check_output
+    from fit.config import load_fit_config
+
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    run = work / "runA"
+    run.mkdir()
+    shutil.copy(work / "preset.toml", run / "preset.toml")
+    text = (work / "fit.toml").read_text()
+    head, rest = text.split("[material]", 1)
+    (work / "again.toml").write_text(
+        head + 'material = "runA/preset.toml"\n[fit]' + rest.split("[fit]", 1)[1]
+    )
+    cfg = load_fit_config(work / "again.toml")
+    with pytest.raises(InputError, match="holds the fit's inputs"):
+        check_output(run, cfg, resume=False, force=True)
+
+
+def test_the_reports_error_over_sd_is_blank_where_the_sd_is_undetermined_or_zero():
+    """An undetermined (infinite) sd showed error/sd "+0" in the report and the row was never
+    marked off; a zero sd gave the summary 1e28. Both are now no ratio."""
+    from fit.output.report import _parameter_rows
+
+    summary = {
+        "values": {"a": 0.5, "b": [0.1, 0.2, 0.3]},
+        "start": {"a": 0.4, "b": [0.1, 0.1, 0.1]},
+        "std": {"a": float("inf"), "b": [float("inf"), 0.01, 0.0]},
+        "truth": {"a": 0.4, "b": [0.0, 0.1, 0.2]},
+        "error": {"a": 0.1, "b": [0.1, 0.1, 0.1]},
+    }
+    rows = {cells[0]: cells for _, cells in _parameter_rows(summary)}
+    (a,) = [c for k, c in rows.items() if ">a<" in k]
+    (b,) = [c for k, c in rows.items() if ">b<" in k]
+    assert "+0" not in a[-1] and "+10" in b[-1] and "+0," not in b[-1]
+
+
 def test_a_capture_warning_is_said_once(base, tmp_path, capfd):
     """A view's warning (here a NaN pixel) is one `warning:` line on stderr, not two."""
     import subprocess
