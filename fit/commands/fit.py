@@ -219,8 +219,13 @@ def fit_identity(prepared: Prepared, cfg: FitConfig) -> dict:
         "views": [v.name for v in prepared.problem.capture.views],
         "phases": [f"{p.describe()} x {p.steps} {p.options!r}" for p in cfg.phases],
         "seed": cfg.seed,
+        # a checkpoint of another capture with the same view names, another starting material
+        # or loss was resumed without a word (its history then mixed two losses)
+        "capture": str(Path(cfg.capture).resolve()),
+        "starting material": cfg.material.table(),
+        "loss": [cfg.loss, cfg.loss_scale, cfg.gains, cfg.downscale, cfg.holdout],
     }
-    return json.loads(json.dumps(identity))
+    return json.loads(json.dumps(identity, default=str))
 
 
 def check_resume(prepared: Prepared, cfg: FitConfig, out: Path) -> None:
@@ -236,9 +241,12 @@ def check_resume(prepared: Prepared, cfg: FitConfig, out: Path) -> None:
     theirs, ours = saved.get("identity"), fit_identity(prepared, cfg)
     if theirs is not None and theirs != ours:
         what = next(k for k in ours if theirs.get(k) != ours[k])
+        shown = f"the checkpoint's {theirs.get(what)}, this fit's {ours[what]}"
+        if what == "loss":
+            what = "loss, loss_scale, gains, downscale or holdout"
         raise InputError(
-            f"{checkpoint.path}: was saved by a fit with other {what} (the checkpoint's "
-            f"{theirs.get(what)}, this fit's {ours[what]}); run without --resume (and with "
+            f"{checkpoint.path}: was saved by a fit with other {what} "
+            f"({shown if len(shown) < 160 else 'they differ'}); run without --resume (and with "
             "--force) to start again"
         )
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -1608,6 +1609,43 @@ def test_force_never_replaces_the_fits_starting_preset(base, tmp_path):
     cfg = load_fit_config(work / "again.toml")
     with pytest.raises(InputError, match="holds the fit's inputs"):
         check_output(run, cfg, resume=False, force=True)
+
+
+def test_resume_refuses_a_checkpoint_of_another_capture_material_or_loss(base, tmp_path):
+    """A checkpoint's identity held the free keys, views, phases and seed only: one saved on
+    another capture with the same view names, another starting material or another loss was
+    resumed without a word (its history then mixed two losses)."""
+    from captures import InputError
+    from fit.commands.fit import check_resume, fit_identity, prepare
+    from fit.config import load_fit_config
+    from fit.solvers import Checkpoint
+
+    cfg = load_fit_config(base / "fit.toml")
+    prepared = prepare(cfg, trace=False)
+    u = prepared.problem.unconstrained(prepared.start)
+    ours = fit_identity(prepared, cfg)
+    changes = {
+        "capture": ("capture", "/elsewhere/cap"),
+        "starting material": ("starting material", {"type": "glaze", "roughness": 0.3}),
+        "loss": ("loss, loss_scale, gains, downscale or holdout", ["cauchy", None, False, 1, 0]),
+    }
+    for key, (named, value) in changes.items():
+        run = tmp_path / key.replace(" ", "_")
+        run.mkdir()
+        checkpoint = Checkpoint(run / "checkpoint.npz")
+        checkpoint.identity = {**ours, key: value}
+        checkpoint.latest = {"phase": 0, "u_phase": u, "history_before": [], "ends": []}
+        checkpoint.latest["reports"] = []
+        checkpoint.flush()
+        with pytest.raises(InputError, match=f"saved by a fit with other {re.escape(named)}"):
+            check_resume(prepared, cfg, run)
+    same = tmp_path / "same"
+    same.mkdir()
+    checkpoint = Checkpoint(same / "checkpoint.npz")
+    checkpoint.identity = ours
+    checkpoint.latest = {"phase": 0, "u_phase": u, "history_before": [], "ends": [], "reports": []}
+    checkpoint.flush()
+    check_resume(prepared, cfg, same)  # its own: accepted
 
 
 def test_the_reports_error_over_sd_is_blank_where_the_sd_is_undetermined_or_zero():
