@@ -213,7 +213,8 @@ def _emitter_key(path, key: str) -> bool:
 
 def fit_identity(prepared: Prepared, cfg: FitConfig) -> dict:
     """What makes a checkpoint this fit's (JSON values): the free parameters, the fitted views,
-    each phase as written, the seed."""
+    each phase as written, the seed, the capture, the starting material and the loss settings
+    (loss, loss_scale, gains, downscale, holdout)."""
     identity = {
         "free": [f.key for f in prepared.free],
         "views": [v.name for v in prepared.problem.capture.views],
@@ -229,9 +230,9 @@ def fit_identity(prepared: Prepared, cfg: FitConfig) -> dict:
 
 
 def check_resume(prepared: Prepared, cfg: FitConfig, out: Path) -> None:
-    """Refuse, before any work, a checkpoint in `out` that another fit saved: other free
-    parameters, views, phases or seed (a vector of the same size would otherwise be read as
-    this fit's)."""
+    """Refuse, before any work, a checkpoint in `out` that another fit saved (`fit_identity`:
+    other free parameters, views, phases, seed, capture, starting material or loss; a vector of
+    the same size would otherwise be read as this fit's)."""
     checkpoint = Checkpoint(out / "checkpoint.npz")
     saved = checkpoint.load()
     if saved is None:
