@@ -609,19 +609,24 @@ def test_a_peer_views_size_may_be_a_whole_float(tmp_path):
         peer_capture(path)
 
 
-def test_a_mask_stored_as_codes_0_and_1_reads_as_a_mask(tmp_path):
-    """Some tools write masks as 8-bit codes 0 and 1 (not 255): read as the object's pixels."""
+def _png(path: Path, stored: np.ndarray) -> Path:
+    """An 8-bit PNG of `stored` (H, W, C) codes, as they are."""
     import OpenImageIO as oiio
 
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), oiio.ImageSpec(stored.shape[1], stored.shape[0], stored.shape[2], "uint8"))
+    out.write_image(stored)
+    out.close()
+    return path
+
+
+def test_a_mask_stored_as_codes_0_and_1_reads_as_a_mask(tmp_path):
+    """Some tools write masks as 8-bit codes 0 and 1 (not 255): read as the object's pixels."""
     from captures.images import read_mask
 
     codes = np.zeros((6, 8, 1), np.uint8)
     codes[2:4, 3:6] = 1
-    out = oiio.ImageOutput.create(str(tmp_path / "mask.png"))
-    out.open(str(tmp_path / "mask.png"), oiio.ImageSpec(8, 6, 1, "uint8"))
-    out.write_image(codes)
-    out.close()
-    mask = read_mask(tmp_path / "mask.png")
+    mask = read_mask(_png(tmp_path / "mask.png", codes))
     assert mask.sum() == 6 and mask[2:4, 3:6].all()
 
 
@@ -673,18 +678,12 @@ def test_negative_pixels_are_counted_in_a_warning(tmp_path, caplog):
 def test_a_grey_and_alpha_mask_is_read_by_its_grey(tmp_path):
     """A mask saved as grey and alpha (alpha 1 everywhere) made every pixel the object: its
     alpha was read as a colour channel."""
-    import OpenImageIO as oiio
-
     from captures.images import read_mask
 
     stored = np.zeros((6, 8, 2), np.uint8)
     stored[2:4, 3:6, 0] = 255
     stored[..., 1] = 255
-    out = oiio.ImageOutput.create(str(tmp_path / "mask.png"))
-    out.open(str(tmp_path / "mask.png"), oiio.ImageSpec(8, 6, 2, "uint8"))
-    out.write_image(stored)
-    out.close()
-    mask = read_mask(tmp_path / "mask.png")
+    mask = read_mask(_png(tmp_path / "mask.png", stored))
     assert mask.sum() == 6 and mask[2:4, 3:6].all()
 
 

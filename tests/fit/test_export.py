@@ -514,13 +514,13 @@ def test_materialx_layer_named_as_a_library_element(tmp_path, name):
 
 def test_baking_in_bands_is_baking_at_once(tmp_path, monkeypatch):
     """Masks and colours are evaluated a band of rows at a time (a 16384-texel square at once
-    held a surface interaction per texel: tens of GB); the bands change nothing, also where a
-    band ends inside a row's worth. The largest size is refused before any work."""
+    held a surface interaction per texel: tens of GB); the bands change nothing, the last one
+    shorter than the others. The largest size is refused before any work."""
     import fit.render.bake as render_bake
 
     material = build_material(tomllib.loads(CUP.read_text())["material"], CUP)
     whole = plan(material, 24)
-    monkeypatch.setattr(render_bake, "BAND_TEXELS", 100)  # 4 rows of 24 a band, 6 bands
+    monkeypatch.setattr(render_bake, "BAND_TEXELS", 130)  # 5 rows of 24 a band: 5x4 + 4
     banded = plan(material, 24)
     for a, b in zip(whole.layers, banded.layers, strict=True):
         for field in ("mask", "colour_map"):
