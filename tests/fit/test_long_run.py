@@ -21,6 +21,11 @@ ROOT = Path(__file__).resolve().parents[2]
 MAX_RSS_GROWTH = 4 << 20
 MAX_JIT_GROWTH = 64 << 10
 MAX_LIVE_GROWTH = 50
+#: Kernels Dr.Jit may build between the steps: one. A re-trace builds one or more every step it
+#: happens (100 over these steps for a re-jitted render); one kernel once, mid-run, was seen twice
+#: in the full suite (2026-12-02: 1 of 8 clean-clone runs), never alone: earlier tests' pending
+#: work flushed late, not this loop's.
+MAX_KERNELS = 1
 
 
 def check_flat(run: LongRun, first: int = 50, last: int = 150) -> None:
@@ -33,7 +38,9 @@ def check_flat(run: LongRun, first: int = 50, last: int = 150) -> None:
     assert live < MAX_LIVE_GROWTH, f"{live:.0f} more live JIT variables (a leaked AD graph?)"
     traces = run.traces[last - 1] - run.traces[first - 1]
     assert traces == 0, f"JAX re-traced {traces} times after step {first}"
-    assert kernels == 0, f"Dr.Jit built {kernels:.0f} kernels after step {first} (re-tracing)"
+    assert kernels <= MAX_KERNELS, (
+        f"Dr.Jit built {kernels:.0f} kernels after step {first} (re-tracing)"
+    )
 
 
 def test_memory_and_tracing_stay_flat():
@@ -47,3 +54,23 @@ def test_memory_and_tracing_stay_flat():
     assert len(run.seconds) == 150 and np.all(np.isfinite(run.jit))
     check_flat(run)
     assert set(run.values) == {"glaze.pigment", "glaze.roughness", "glaze.ior"}
+
+
+def test_the_flatness_check_catches_retracing_but_not_one_late_kernel():
+    """Made-up runs: one kernel built once mid-run passes (an earlier test's late flush), two
+    fail, as a render re-traced every step (100) does."""
+    import pytest
+
+    steps = np.arange(1, 151)
+
+    def run(kernels_after_60: int) -> LongRun:
+        jit = np.zeros((len(steps), 3))
+        jit[steps >= 60, 2] = kernels_after_60
+        flat = np.zeros(150)
+        return LongRun(16, 1, flat + 0.01, flat, flat, steps, jit, {})
+
+    check_flat(run(0))
+    check_flat(run(MAX_KERNELS))
+    for kernels in (MAX_KERNELS + 1, 100):
+        with pytest.raises(AssertionError, match=f"built {kernels} kernels"):
+            check_flat(run(kernels))
