@@ -134,7 +134,7 @@ class Capture:
                 block = downscale(mask[..., None].astype(np.float32), np.ones((h, w)), factor)[0]
                 mask = block[..., 0] > view.mask_coverage  # its meaning kept (a peer's: any)
             width, height = downscaled_size(view.camera.width, view.camera.height, factor)
-            camera = replace(view.camera, width=width, height=height)
+            camera = view.camera.resized(width, height)
             views.append(replace(view, image=image, weight=weight, camera=camera, mask=mask))
             cameras.append(camera)
         scene = replace(self.scene, cameras=tuple(cameras[: len(self.scene.cameras)]))

@@ -7,7 +7,7 @@ description and `fit` turns it into a Mitsuba scene. Light colours are resolved 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -72,6 +72,8 @@ class Camera:
     `kind` "perspective": horizontal field of view `fov_x_deg`; a thin lens when
     `aperture_radius` > 0 (metres), focused at `focus_distance` (metres; default: the target).
     `kind` "orthographic": the view spans `ortho_width` metres horizontally.
+    `principal_point` (a pinhole's, calibrated): `(cx, cy)` in pixels from the image's top-left
+    corner, pixel centres at +0.5; None is the image's centre.
     """
 
     origin: Vec3
@@ -84,6 +86,28 @@ class Camera:
     aperture_radius: float = 0.0
     focus_distance: float | None = None
     ortho_width: float = 1.0
+    principal_point: tuple[float, float] | None = None
+
+    def principal_offset(self) -> tuple[float, float]:
+        """The image's centre minus the principal point, as shares of the width and height
+        (Mitsuba's `principal_point_offset_x`, `_y`); (0, 0) without one."""
+        if self.principal_point is None:
+            return 0.0, 0.0
+        cx, cy = self.principal_point
+        return 0.5 - cx / self.width, 0.5 - cy / self.height
+
+    def resized(self, width: int, height: int) -> Camera:
+        """The camera with `width` x `height` square pixels over the same field of view, centred
+        as `weights.downscale` centres them (`width / self.width` of this one's pixels a side);
+        the principal point follows."""
+        point = self.principal_point
+        if point is not None:
+            scale = width / self.width
+            point = (
+                width / 2 + (point[0] - self.width / 2) * scale,
+                height / 2 + (point[1] - self.height / 2) * scale,
+            )
+        return replace(self, width=width, height=height, principal_point=point)
 
 
 # Lights -------------------------------------------------------------------------------------------
@@ -221,6 +245,7 @@ def sees(camera: Camera, center: np.ndarray, radius: float) -> bool:
     if depth + radius <= 0:
         return False
     half_x = np.tan(np.radians(camera.fov_x_deg) / 2)
-    half_diag = np.arctan(half_x * np.hypot(1.0, aspect))  # the corners' half angle
+    ox, oy = (abs(x) for x in camera.principal_offset())  # an off-centre axis: its far corner
+    half_diag = np.arctan(half_x * np.hypot(1 + 2 * ox, aspect * (1 + 2 * oy)))
     angle = np.arctan2(lateral, depth)
     return angle < half_diag + np.arcsin(min(1.0, radius / max(np.linalg.norm(offset), 1e-12)))

@@ -15,7 +15,9 @@ target = [0, 0, 0.05]
 fov_x_deg = 30
 width = 256
 height = 256
-aperture_radius = 0.002        # thin lens (depth of field); focus_distance defaults to the target
+principal_point = [129.5, 126.0]   # calibrated, pixels from the top-left (default: the centre)
+# aperture_radius = 0.002      # a thin lens instead (depth of field; no principal_point);
+                               # focus_distance defaults to the target
 
 [[scene.lights]]
 type = "rectangle"             # rectangle | point | directional
@@ -185,6 +187,12 @@ Geometry = Annotated[tagged(SphereSpec, CupSpec, ObjSpec), BeforeValidator(_geom
 # Cameras ------------------------------------------------------------------------------------------
 
 
+#: How far a principal point may lie from the image's centre, as a share of the image's size: a
+#: calibrated one is within a few percent; further off, it was likely given in another
+#: convention (normalised, or pixels of another resolution).
+MAX_PRINCIPAL_OFFSET = 0.25
+
+
 class CameraSpec(StrictModel):
     type: Literal["perspective", "orthographic"] = "perspective"
     """The projection (a thin lens is a perspective camera with an `aperture_radius`)."""
@@ -220,6 +228,10 @@ class CameraSpec(StrictModel):
     """Thin-lens focus distance in metres (default: the target's)."""
     ortho_width: PositiveFloat = 1.0
     """Horizontal extent of the view in metres (orthographic only; required there)."""
+    principal_point: tuple[FiniteFloat, FiniteFloat] | None = None
+    """A calibrated pinhole camera's principal point `[cx, cy]`, in pixels of this image from its
+    top-left corner, pixel centres at +0.5 (COLMAP's convention: the image's centre is
+    `[width / 2, height / 2]`, the default; OpenCV's `cx, cy` plus 0.5)."""
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -242,9 +254,30 @@ class CameraSpec(StrictModel):
         if self.type == "orthographic":
             if "ortho_width" not in given:
                 raise FieldError("ortho_width", "missing; add it (an orthographic camera needs it)")
-            for key in sorted({"fov_x_deg", "aperture_radius"} & given):
+            for key in sorted({"fov_x_deg", "aperture_radius", "principal_point"} & given):
                 raise FieldError(key, "does not apply to type = 'orthographic'; drop it")
+        if self.principal_point is not None:
+            self._check_principal_point()
         return self
+
+    def _check_principal_point(self) -> None:
+        if self.aperture_radius > 0:
+            raise FieldError(
+                "principal_point",
+                "applies to a pinhole camera only (Mitsuba's thin lens has none); drop it or "
+                "aperture_radius",
+            )
+        centre = (self.width / 2, self.height / 2)
+        off = [abs(p - c) / (2 * c) for p, c in zip(self.principal_point, centre, strict=True)]
+        if max(off) > MAX_PRINCIPAL_OFFSET:
+            cx, cy = self.principal_point
+            raise FieldError(
+                "principal_point",
+                f"[{cx:g}, {cy:g}] is {max(off):.0%} of the image from its centre "
+                f"[{centre[0]:g}, {centre[1]:g}] (at most {MAX_PRINCIPAL_OFFSET:.0%}): give it in "
+                f"pixels of this {self.width}x{self.height} image from its top-left corner (a "
+                "calibration at another resolution scales with it)",
+            )
 
     def build(self) -> Camera:
         return Camera(kind=self.type, **self.model_dump(exclude={"type"}))
@@ -597,6 +630,8 @@ def camera_to_table(camera: Camera) -> dict:
         out["ortho_width"] = camera.ortho_width
     else:
         out["fov_x_deg"] = camera.fov_x_deg
+        if camera.principal_point is not None:
+            out["principal_point"] = list(camera.principal_point)
         if camera.aperture_radius > 0:
             out["aperture_radius"] = camera.aperture_radius
             if camera.focus_distance:

@@ -73,6 +73,9 @@ def sensor_dict(camera: Camera, spp: int) -> dict:
     out.update(
         {"type": "perspective", "fov": camera.fov_x_deg, "fov_axis": "x", "to_world": to_world}
     )
+    if camera.principal_point is not None:  # a pinhole's (the schema refuses it with a lens)
+        x, y = camera.principal_offset()
+        out.update({"principal_point_offset_x": x, "principal_point_offset_y": y})
     if camera.aperture_radius > 0:
         focus = camera.focus_distance or float(
             np.linalg.norm(np.subtract(camera.target, camera.origin))

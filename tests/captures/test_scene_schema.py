@@ -197,6 +197,84 @@ def test_obj_and_envmap_paths_resolve_against_the_file(tmp_path):
     assert scene.environment == EnvMap(tmp_path / "sky.exr", 1.0)
 
 
+def calibrated(**extra) -> dict:
+    """A scene table with one 8x6 perspective camera, plus `extra` camera keys."""
+    camera = {"origin": [0, -4, 0], "target": [0, 0, 0], "width": 8, "height": 6}
+    return {"cameras": [{"fov_x_deg": 40, **camera, **extra}]}
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (
+            calibrated(principal_point=[4.5, 3.5], aperture_radius=0.01),
+            "scene.cameras[0].principal_point: applies to a pinhole camera only",
+        ),
+        (
+            calibrated(principal_point=[0.52, 0.49]),  # normalised, not pixels
+            "scene.cameras[0].principal_point: [0.52, 0.49] is 44% of the image from its centre "
+            "[4, 3] (at most 25%): give it in pixels of this 8x6 image",
+        ),
+        (
+            calibrated(principal_point=[4.5, 9.0]),  # pixels of a larger image
+            "[4.5, 9] is 100% of the image from its centre",
+        ),
+        (calibrated(principal_point=[4.5]), "scene.cameras[0].principal_point"),
+        (calibrated(principal_point=[4.5, float("nan")]), "scene.cameras[0].principal_point"),
+        (
+            {
+                "cameras": [
+                    {
+                        **calibrated()["cameras"][0],
+                        "type": "orthographic",
+                        "ortho_width": 1,
+                        "principal_point": [4, 3],
+                    }
+                ]
+            },
+            "scene.cameras[0].fov_x_deg: does not apply",
+        ),
+        (
+            {
+                "cameras": [
+                    {
+                        "type": "orthographic",
+                        "origin": [0, -4, 0],
+                        "target": [0, 0, 0],
+                        "width": 8,
+                        "height": 6,
+                        "ortho_width": 1,
+                        "principal_point": [4, 3],
+                    }
+                ]
+            },
+            "scene.cameras[0].principal_point: does not apply to type = 'orthographic'",
+        ),
+    ],
+)
+def test_a_principal_point_is_checked(tmp_path, change, message):
+    """A calibrated principal point: a pinhole's only, in this image's pixels, near its centre."""
+    with pytest.raises(CaptureError) as err:
+        parse_scene(scene_table(**change), tmp_path / "s.toml")
+    assert message in str(err.value) and "s.toml" in str(err.value)
+
+
+def test_a_principal_point_is_read_and_written_back(tmp_path):
+    from captures.schema import camera_to_table
+
+    scene = parse_scene(scene_table(**calibrated(principal_point=[4.75, 2])), tmp_path / "s.toml")
+    (camera,) = scene.cameras
+    assert camera.principal_point == (4.75, 2.0)
+    assert camera.principal_offset() == pytest.approx((0.5 - 4.75 / 8, 0.5 - 2 / 6))
+    table = camera_to_table(camera)
+    assert table["principal_point"] == [4.75, 2.0]
+    again = parse_scene(scene_table(cameras=[table]), tmp_path / "s.toml").cameras[0]
+    assert again == camera
+    # a downscaled camera keeps the point where it was on the scene: 8 px -> 3 (8/3 px each)
+    small = camera.resized(3, 2)
+    assert small.principal_point == pytest.approx((1.5 + 0.75 * 3 / 8, 1.0 - 1.0 * 3 / 8))
+
+
 def rect_light(**extra) -> dict:
     """A scene table with one rectangle light facing the origin, plus `extra` keys."""
     return {"lights": [{"center": [1, 1, 1], "target": [0, 0, 0], "size": [1, 1], **extra}]}

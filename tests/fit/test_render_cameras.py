@@ -25,6 +25,9 @@ def sphere_capture(kind: str, width: int = 40, height: int = 30) -> tuple[Captur
         camera = dataclasses.replace(camera, aperture_radius=0.02)
     elif kind == "orthographic":
         camera = dataclasses.replace(camera, kind="orthographic", ortho_width=2.6)
+    elif kind == "calibrated":  # a pinhole with its principal point off the image's centre
+        point = (0.6 * width + 0.25, 0.42 * height - 0.5)
+        camera = dataclasses.replace(camera, principal_point=point)
     scene = dataclasses.replace(cfg.scene, cameras=(camera,))
     view = View("v0", np.zeros((height, width, 3), np.float32), np.ones((height, width)), camera)
     return Capture(scene, [view]), cfg.material
@@ -168,7 +171,7 @@ def test_a_recording_that_fails_runs_unfrozen():
     del stray
 
 
-@pytest.mark.parametrize("kind", ["perspective", "orthographic"])
+@pytest.mark.parametrize("kind", ["perspective", "orthographic", "calibrated"])
 @pytest.mark.parametrize("size", [(40, 30), (45, 33), (41, 31)])
 def test_downscaled_capture_of_any_size_matches_a_smaller_render(kind, size):
     """A render at any size, area-averaged by 2, equals a render of the downscaled camera (the
@@ -274,3 +277,40 @@ def test_thin_lens_views_stay_frozen_over_many_steps():
         renderer.vjp(x, step, 2, cotangent)
     for f in (group.primal, group.reverse):
         assert f.frozen is not None and max(f.recorded.values()) <= RERECORD_LIMIT
+
+
+def _centroid(image: np.ndarray) -> np.ndarray:
+    """The (x, y) centre of an image's light, in pixels from the top-left corner."""
+    weight = image.sum(axis=-1)
+    ys, xs = np.indices(weight.shape) + 0.5
+    return np.array([(xs * weight).sum(), (ys * weight).sum()]) / weight.sum()
+
+
+@pytest.mark.parametrize("batch", [True, False])
+def test_a_principal_point_moves_the_image_with_it(batch):
+    """A pinhole's principal point moved by (dx, dy) pixels moves the whole image by (dx, dy):
+    the object's centroid follows to a small fraction of a pixel, in a `batch` sensor beside a
+    centred view as in a sensor of its own. (The sign is Mitsuba's offset's opposite: its
+    `principal_point_offset_x` = 0.1 moves the image left by a tenth of the width.)"""
+    width, height = 48, 36
+    capture, _ = sphere_capture("perspective", width, height)
+    base = capture.views[0]
+    far = tuple(1.6 * float(c) for c in base.camera.origin)  # the sphere well inside the view
+    base = dataclasses.replace(base, camera=dataclasses.replace(base.camera, origin=far))
+    shift = np.array([4.0, -3.0])
+    point = tuple(np.array([width / 2, height / 2]) + shift)
+    moved = dataclasses.replace(base.camera, principal_point=point)
+    capture = dataclasses.replace(
+        capture,
+        scene=dataclasses.replace(capture.scene, environment=(0.0, 0.0, 0.0)),  # black around
+        views=[base, dataclasses.replace(base, name="moved", camera=moved)],
+    )
+    material = build_material({"type": "oren_nayar", "reflectance": [0.5] * 3, "sigma": 0.3})
+    renderer = Renderer(capture, material, resolve(material, ["oren_nayar.sigma"]), batch=batch)
+    assert len(renderer.groups) == (1 if batch else 2)
+    images = renderer.render(np.asarray([0.3], np.float32), 0, 256).reshape(2, height, width, 3)
+    for image in images:  # the sphere in view, whole: nothing lit on the border
+        border = np.concatenate([image[[0, -1]].ravel(), image[:, [0, -1]].ravel()])
+        assert border.max() < 1e-3 * image.max()
+    centred, shifted = (_centroid(image) for image in images)
+    np.testing.assert_allclose(shifted - centred, shift, atol=0.05)

@@ -134,6 +134,7 @@ CAMERA = {"origin": [0.0, -0.4, 0.12], "target": [0, 0, 0.05], "width": 24, "hei
     [
         {**CAMERA, "fov_x_deg": 30},
         {**CAMERA, "fov_x_deg": 30, "aperture_radius": 0.003},
+        {**CAMERA, "fov_x_deg": 30, "principal_point": [13.5, 11.0]},  # calibrated, off-centre
         {**CAMERA, "type": "orthographic", "ortho_width": 0.16},
     ],
 )
