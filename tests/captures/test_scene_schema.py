@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from pathlib import Path
@@ -680,3 +681,20 @@ def test_a_camera_between_two_parts_next_to_a_face_wound_wrong_is_kept(tmp_path)
     table["cameras"][0].update(origin=[4.2, 0.1, 0.1], target=[4.2, -3.0, 0.1])
     with pytest.raises(CaptureError, match=r"scene.cameras\[0\].origin .* is inside the object"):
         parse_scene(table, tmp_path / "s.toml")
+
+
+def test_an_off_centre_principal_point_widens_what_a_view_sees():
+    """A principal point a quarter of the width off the centre shows 1.5x the tangent of half
+    the field of view on one side: an object 31 degrees off the axis of a 40-degree camera is
+    in that view (28.6 degrees, plus its own 3), not in a centred one's (27.2 at the corners).
+    `sees` only refuses views that see nothing: it takes the farther side on both."""
+    from captures.scene import Camera, sees
+
+    camera = Camera((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0), 40.0, 100, 100)
+    off = np.radians(31.0)
+    for side in (-1, 1):
+        center = np.array([side * np.sin(off), np.cos(off), 0.0]) * 10.0
+        radius = 10.0 * np.sin(np.radians(3.0))
+        assert not sees(camera, center, radius)
+        shifted = dataclasses.replace(camera, principal_point=(75.0, 50.0))
+        assert sees(shifted, center, radius)
