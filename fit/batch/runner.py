@@ -161,6 +161,8 @@ def summary_entry(summary: dict) -> dict:
         "wall_time_s": summary.get("wall_time_s"),
         "values": {k: v for k, v in summary.get("values", {}).items() if np.size(v) <= 3},
     }
+    if summary.get("seed") is not None:  # the config's own seed, where the spec gave none
+        entry["seed"] = summary["seed"]
     if "starts" in summary:
         entry["starts"] = [{"loss": s["loss"], "best": s["best"]} for s in summary["starts"]]
     return entry

@@ -430,3 +430,15 @@ def test_batch_spec_names_for_manifests_and_odd_values(tmp_path):
         spec.write_text(text)
         with pytest.raises(InputError, match=re.escape(message)):
             load_batch(spec)
+
+
+def test_the_index_names_a_configs_own_seed():
+    """A fit whose spec gives no seed runs at its config's: the index's seed column shows it
+    (it was blank)."""
+    from fit.batch.runner import _csv, summary_entry
+
+    summary = {"interrupted": False, "values": {"glaze.ior": 1.5}, "error": {}, "seed": 7}
+    entry = {"name": "fit", "status": "done", "seed": None} | summary_entry(summary)
+    assert entry["seed"] == 7
+    assert _csv([entry]).splitlines()[1].split(",")[4] == "7"
+    assert "seed" not in summary_entry({**summary, "seed": None})
