@@ -1,9 +1,9 @@
 """Running a batch: each fit a Ray task in a worker process, into its run folder, and the batch
 index (JSON, CSV and an HTML page linking every report) rewritten as each fit ends.
 
-A fit whose run folder holds the `summary.json` of a finished run (and no checkpoint) is skipped,
-so a killed or interrupted batch continues where it stopped; a fit killed mid-way resumes from
-its checkpoint.
+A fit whose run folder holds the `summary.json` of a finished run (and no checkpoint) of what its
+config still asks for is skipped, so a killed or interrupted batch continues where it stopped; a
+fit killed mid-way resumes from its checkpoint.
 A fit that fails is reported with its one-line error; the others run on."""
 
 from __future__ import annotations
@@ -74,8 +74,9 @@ def finished(out: Path, job: Job | None = None) -> dict | None:
 
 
 def _same_fit(summary: dict, job: Job) -> bool:
-    """Whether a finished summary is the fit `job` asks for (its config file, capture, seed)."""
-    from ..config import load_fit_config
+    """Whether a finished summary is the fit `job` asks for: its config file and capture, and
+    what the config asks for now (`config_identity`: settings, seed, starting material)."""
+    from ..config import config_identity, load_fit_config
 
     try:
         config = Path(str(summary.get("config"))).resolve()
@@ -86,10 +87,11 @@ def _same_fit(summary: dict, job: Job) -> bool:
             and Path(str(summary.get("capture"))).resolve() != Path(job.capture).resolve()
         ):
             return False
-        if job.seed is not None:
-            return summary.get("seed") == job.seed
         # with the job's capture: a template config's own capture need not exist
-        return summary.get("seed") == load_fit_config(job.config, job.capture).seed
+        cfg = load_fit_config(job.config, job.capture, job.seed)
+        if "config_identity" in summary:  # the config edited since: the fit runs again
+            return summary["config_identity"] == config_identity(cfg)
+        return summary.get("seed") == cfg.seed  # a summary written before 2026-12-02
     except (OSError, ValueError, TypeError, InputError):
         return False
 

@@ -38,7 +38,7 @@ from captures.capture import MIN_SIDE, Capture
 from captures.images import TEXTURE_SUFFIXES, write_image
 from materials.params import LAYER_PLUGINS, ChoiceOption
 
-from ..config import FitConfig
+from ..config import FitConfig, config_identity
 from ..material import (
     Free,
     check_uvs,
@@ -582,6 +582,7 @@ def _summary(cfg, capture, held, start, result, wall, panels, interrupted) -> di
         ],
         "outcomes": [r.as_dict() for r in result.reports],
         "seed": cfg.seed,
+        "config_identity": config_identity(cfg),
         # the material's structural choices (lobes, coupling, Fresnel, noise scales)
         "options": dict(cfg.material.options),
         "holdout": [capture.views[i].name for i in held],

@@ -44,6 +44,20 @@ jacobian_spp = 16         # lm: decorrelated Jacobian at this spp (absent: the r
 ```
 """
 
-from .models import FitConfig, FitSettings, RenderConfig, load_fit_config, load_render_config
+from .models import (
+    FitConfig,
+    FitSettings,
+    RenderConfig,
+    config_identity,
+    load_fit_config,
+    load_render_config,
+)
 
-__all__ = ["FitConfig", "FitSettings", "RenderConfig", "load_fit_config", "load_render_config"]
+__all__ = [
+    "FitConfig",
+    "FitSettings",
+    "RenderConfig",
+    "config_identity",
+    "load_fit_config",
+    "load_render_config",
+]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -124,6 +125,18 @@ class FitConfig:
         if name in FitSettings.model_fields:
             return getattr(self.settings, name)
         raise AttributeError(name)
+
+
+def config_identity(cfg: FitConfig) -> dict:
+    """What a fit's config asks for (JSON values): its [fit] settings, capture and starting
+    material. A batch skips a finished fit only while its config still asks for the same
+    (`fit.batch.runner.finished`): an edited config runs again."""
+    identity = {
+        "settings": cfg.settings.model_dump(mode="json"),
+        "capture": str(Path(cfg.capture).resolve()),
+        "starting material": cfg.material.table(),
+    }
+    return json.loads(json.dumps(identity, default=str))
 
 
 def load_render_config(path: str | Path) -> RenderConfig:

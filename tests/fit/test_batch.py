@@ -364,6 +364,37 @@ def test_only_a_matching_finished_summary_skips_a_fit(tmp_path):
     assert finished(job.out, job) is None
 
 
+def test_an_edited_config_runs_its_finished_fit_again(tmp_path):
+    """A finished fit is skipped while its config asks for the same (its settings, seed,
+    capture, starting material: `config_identity`, saved in the summary); edited since (a
+    phase's steps, the starting roughness, the free keys), it runs again. It was skipped,
+    its results those of the old config."""
+    from fit.batch.runner import finished
+    from fit.config import config_identity, load_fit_config
+
+    (tmp_path / "a" / "cap").mkdir(parents=True)
+    config = tmp_path / "a" / "fit.toml"
+    config.write_text(TINY)
+    spec = tmp_path / "batch.toml"
+    spec.write_text('configs = ["a/fit.toml"]\n')
+    (job,) = load_batch(spec).jobs
+    job.out.mkdir(parents=True)
+    cfg = load_fit_config(config)
+    summary = {"interrupted": False, "values": {}, "error": {}, "seed": 0}
+    summary |= {"config": str(config), "config_identity": config_identity(cfg)}
+    (job.out / "summary.json").write_text(json.dumps(summary))
+    assert finished(job.out, job) is not None
+    for old, new in (
+        ("steps = 3", "steps = 4"),
+        ("roughness = 0.0625", "roughness = 0.1"),
+        ('free = ["glaze.pigment"]', 'free = ["glaze.pigment", "glaze.ior"]'),
+    ):
+        config.write_text(TINY.replace(old, new))
+        assert finished(job.out, job) is None, new
+    config.write_text("# a comment changes nothing\n" + TINY)
+    assert finished(job.out, job) is not None
+
+
 def test_a_run_folder_that_is_not_a_run_is_said_for_a_batch(tmp_path, monkeypatch):
     """In a batch (no --out, no --force) a job's folder holding other files, or a checkpoint
     that cannot be read, says what to do there; an unmakeable kernel cache names its key."""
