@@ -241,7 +241,11 @@ def obj_triangles(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 #: How many numbers each OBJ vertex record takes: positions 3 (4 with a weight, 6 or 7 with a
 #: colour, as some exporters write), texture coordinates 1 to 3, normals 3.
-_NUMBERS = {"v": (3, 7), "vt": (1, 3), "vn": (3, 3)}
+_NUMBERS = {"v": (3, 7), "vt": (2, 3), "vn": (3, 3)}  # Mitsuba refuses a vt of one number
+#: The longest line Mitsuba's OBJ loader reads, in characters without the line's end (measured:
+#: 1023 load with "\n", fail with "\r\n": "excessively long line"; a large polygon's face or a
+#: long comment).
+MAX_OBJ_LINE = 1022
 
 
 def _check_numbers(path: Path, number: int, words: list[str]) -> list[float]:
@@ -309,14 +313,26 @@ def check_obj(path: str | Path, face_normals: bool = False) -> ObjCheck:
         raise CaptureError(f"{path}: is a folder; give an OBJ file") from None
     except OSError as err:
         raise CaptureError(f"{path}: cannot read ({err.strerror})") from None
+    if text.startswith("\ufeff") and text[1:].lstrip(" \t")[:1] not in ("#", "\n", "\r", ""):
+        raise CaptureError(  # Mitsuba skips the marked line: a vertex lost, the faces shifted
+            f"{path}: starts with a byte-order mark (U+FEFF) on a record, which the renderer "
+            "skips (every vertex after it shifts); save the file as UTF-8 without BOM"
+        )
+    text = text.removeprefix("\ufeff")
     counts = {"v": 0, "vt": 0, "vn": 0}
-    faces, faces_with_vt = 0, 0
+    faces, faces_with_vt, without_normal, zero_normal = 0, 0, 0, None
     # every vertex (x, y, z); each face's first three corners, all faces' vertex and texture
     # indices (0-based) and their corner counts: typed arrays, a fifth of lists' memory (a
     # million-face scan took 726 MB with lists)
     positions, triangles = array("d"), array("q")
     corners_v, corners_t, sizes = array("q"), array("q"), array("q")
     for number, line in enumerate(text.splitlines(), 1):
+        if len(line) > MAX_OBJ_LINE:
+            raise CaptureError(
+                f"{path}: line {number} is {len(line):,} characters long; the renderer reads "
+                f"lines of at most {MAX_OBJ_LINE:,}: triangulate its large polygons (Blender: "
+                "Triangulate modifier) or shorten the line, and export it again"
+            )
         words = line.split()
         if not words:
             continue
@@ -325,6 +341,8 @@ def check_obj(path: str | Path, face_normals: bool = False) -> ObjCheck:
             numbers = _check_numbers(path, number, words)
             if words[0] == "v":
                 positions.extend(numbers[:3])
+            elif words[0] == "vn" and zero_normal is None and sum(x * x for x in numbers) < 1e-36:
+                zero_normal = number, line.strip()  # its square underflows float32
         elif words[0] == "f":
             faces += 1
             corners = words[1:]
@@ -335,6 +353,13 @@ def check_obj(path: str | Path, face_normals: bool = False) -> ObjCheck:
             textured = True
             for corner in corners:
                 parts = corner.split("/")
+                if len(parts) > 3:
+                    raise CaptureError(
+                        f"{path}: line {number}: face corner {corner!r} has {len(parts)} "
+                        "indices; a corner is v, v/vt, v//vn or v/vt/vn: fix the file (export "
+                        "it again)"
+                    )
+                without_normal += len(parts) < 3 or parts[2] == ""
                 read = [-1, -1]  # its vertex and texture indices (0-based; -1: none)
                 for k, (kind, index) in enumerate(zip(("v", "vt", "vn"), parts, strict=False)):
                     if index == "" and kind != "v":
@@ -369,6 +394,21 @@ def check_obj(path: str | Path, face_normals: bool = False) -> ObjCheck:
     if faces == 0:
         what = "is not an OBJ text file" if not positions else "the OBJ has no faces"
         raise CaptureError(f"{path}: {what}; give a triangle mesh (OBJ text)")
+    if zero_normal is not None and not face_normals:  # face normals discard them
+        raise CaptureError(
+            f"{path}: line {zero_normal[0]}: normal '{zero_normal[1]}' has no direction (the "
+            "renderer refuses it); export the normals again, or set face_normals = true in the "
+            "geometry table"
+        )
+    if counts["vn"] and without_normal and not face_normals:
+        # with normals in the file Mitsuba keeps them and computes none: a corner without one
+        # reads uninitialised memory (measured: normals of 1e21, faces black or lit at random)
+        raise CaptureError(
+            f"{path}: has normals (vn), but {without_normal:,} of its {len(corners_v):,} face "
+            "corners name none (v or v/vt, not v//vn or v/vt/vn), and the renderer then has no "
+            "normal there; export with normals on every face, delete the vn lines (normals "
+            "interpolated), or set face_normals = true in the geometry table"
+        )
     p = np.frombuffer(positions, np.float64).reshape(-1, 3)
     t = np.frombuffer(triangles, np.int64).reshape(-1, 3)
     area = np.linalg.norm(np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]]), axis=1)
@@ -469,6 +509,12 @@ def shading_warnings(
         "and export it again, with normals"
     )
     shading = "with face_normals" if face_normals else "with no vertex normals to shade by"
+    # the faces' sides joined where their corners share a position (a "triangle soup", every
+    # face with corners of its own, is one object all the same: its parts were each face alone)
+    _, weld = np.unique(positions, axis=0, return_inverse=True)
+    weld = weld.ravel()
+    a, b = weld[corners], weld[corners[following]]
+    keep = a != b
     first, second, uses = _edge_pairs(a[keep], b[keep])
     flipped = int(np.sum(a[keep][first] == a[keep][second]))
     if flipped:
@@ -486,7 +532,7 @@ def shading_warnings(
     n = len(positions)
     graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n))
     _, part = connected_components(graph, directed=False)
-    part_of_corner = part[corners]
+    part_of_corner = part[a]
     open_parts = np.unique(part_of_corner[keep][uses != 2])
     volume = np.bincount(
         part_of_corner, weights=np.sum(sides * anchor, axis=1) / 6, minlength=part.max() + 1

@@ -462,6 +462,21 @@ def test_a_mesh_without_normals_says_how_it_will_shade(tmp_path, caplog):
     (tmp_path / "islands.obj").write_text("\n".join(islands) + "\n")
     assert check_obj(tmp_path / "islands.obj").warnings == ()
     assert check_obj(cube_obj(tmp_path / "in_vn.obj", flip=range(6), normals=True)).warnings == ()
+    # a "triangle soup" (every face its own corners) is one object where its corners meet: wound
+    # inside out it is warned (each face was an open part of its own: nothing said)
+    for name, source in (("soup.obj", bad), ("soup_in.obj", good)):
+        points = [line for line in source.splitlines() if line.startswith("v ")]
+        faces = [line.split()[1:] for line in source.splitlines() if line.startswith("f ")]
+        soup = [points[int(i) - 1] for face in faces for i in face]  # each corner its own
+        first = np.cumsum([0] + [len(face) for face in faces])
+        soup += [
+            "f " + " ".join(str(first[k] + j + 1) for j in range(len(face)))
+            for k, face in enumerate(faces)
+        ]
+        (tmp_path / name).write_text("\n".join(soup) + "\n")
+    assert check_obj(tmp_path / "soup.obj").warnings == ()  # no shared vertex: none rounded
+    (soup_in,) = check_obj(tmp_path / "soup_in.obj").warnings
+    assert "1 of its closed parts are wound inside out" in soup_in
 
     caplog.set_level("WARNING")
     scene = parse_scene(scene_table(geometry="cube.obj"), tmp_path / "s.toml")

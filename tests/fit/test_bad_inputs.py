@@ -367,6 +367,36 @@ CASES: list[Case] = [
         obj_case(OBJ.replace("3/3", "x/3")),
         ("m.obj", "integer"),
     ),
+    (  # the renderer's loader: "excessively long line" (an n-gon's face, a long comment)
+        "obj-long-line",
+        obj_case(OBJ + "# " + "x" * 1100 + "\n"),
+        ("m.obj", "line 8 is 1,102 characters long", "triangulate"),
+    ),
+    (  # the renderer's loader: "could not parse line"
+        "obj-vt-one-number",
+        obj_case(OBJ.replace("vt 0 0", "vt 0")),
+        ("m.obj", "line 4", "takes 2 to 3"),
+    ),
+    (  # the renderer's loader: "invalid vertex normal data"
+        "obj-zero-normal",
+        obj_case(OBJ.replace("f 1/1 2/2 3/3", "vn 0 0 0\nf 1/1/1 2/2/1 3/3/1")),
+        ("m.obj", "line 7", "'vn 0 0 0' has no direction", "face_normals = true"),
+    ),
+    (  # rendered with uninitialised normals (1e21), black or lit at random, without a word
+        "obj-normals-not-on-the-faces",
+        obj_case(OBJ.replace("f 1/1 2/2 3/3", "vn 0 0 1\nf 1/1 2/2 3/3")),
+        ("m.obj", "3 of its 3 face corners name none", "face_normals = true"),
+    ),
+    (
+        "obj-four-indices-a-corner",
+        obj_case(OBJ.replace("f 1/1 2/2 3/3", "vn 0 0 1\nf 1/1/1/1 2/2/1/1 3/3/1/1")),
+        ("m.obj", "line 8", "'1/1/1/1' has 4 indices"),
+    ),
+    (  # the renderer skipped the marked first vertex: every face moved to the next ones
+        "obj-byte-order-mark",
+        obj_case("\ufeff" + OBJ),
+        ("m.obj", "byte-order mark", "without BOM"),
+    ),
     (
         "texture-garbage",
         lambda d: (
