@@ -83,12 +83,15 @@ class Material:
     stacked: bool = field(default=False)
 
     def needs_uvs(self) -> list[str]:
-        """What in this material is looked up in UV space (masks, textures, the glaze's noise):
-        the keys, or nothing (it renders on a mesh without texture coordinates)."""
+        """What in this material is looked up in UV space (masks, textures, the glaze's noise,
+        a parameter given as a texture file): the keys, or nothing (it renders on a mesh
+        without texture coordinates)."""
         return [
             k
-            for k in self.params
-            if ".mask." in k or k.endswith(("pigment_noise", "normal_noise", ".texture"))
+            for k, p in self.params.items()
+            if ".mask." in k
+            or k.endswith(("pigment_noise", "normal_noise", ".texture"))
+            or p.texture is not None
         ]
 
     def values(self) -> dict:
@@ -400,5 +403,6 @@ def check_uvs(scene, material: Material) -> None:
             raise ConfigError(
                 f"{geometry.path}: the OBJ has faces without texture coordinates, and the "
                 f"material looks up {shown} in UV space; unwrap the mesh (e.g. Blender: UV > "
-                "Smart UV Project) and export with UVs, or fit a material without masks or noise"
+                "Smart UV Project) and export with UVs, or fit a material without masks, noise or "
+                "textures"
             )

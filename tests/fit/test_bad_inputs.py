@@ -348,6 +348,14 @@ CASES: list[Case] = [
         ("m.obj", "texture coordinates", "glaze.pigment_noise", "unwrap"),
     ),
     (
+        "obj-no-uvs-textured-pigment",  # was painted per triangle (barycentric UVs), silently
+        lambda d: (
+            edit(d / "render.toml", "pigment = [0.1, 0.22, 0.55]", 'pigment = "tex.png"'),
+            obj_case("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")(d),
+        )[-1],
+        ("m.obj", "texture coordinates", "glaze.pigment", "unwrap"),
+    ),
+    (
         "obj-garbage",
         lambda d: (
             (d / "m.obj").write_bytes(GARBAGE)
