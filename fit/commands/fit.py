@@ -279,8 +279,9 @@ def _samples(phase, option: str) -> int:
 def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> Prepared:
     """Open the capture and check everything the fit needs against it (holdout, free keys,
     `[truth]` sizes, each phase's downscale): any problem is a one-line `InputError` before
-    any render. With `trace`, the views' faces seen from behind are warned (`back_face_warning`;
-    a multi-start's workers leave it to the command, which warned once)."""
+    any render. With `trace`, views without the object or seeing its faces from behind are
+    warned (`view_warnings`; a multi-start's workers leave it to the command, which warned
+    once)."""
     capture = open_capture(cfg.capture, cfg.downscale)
     try:
         held = held_out(len(capture.views), cfg.holdout if holdout is None else holdout)
@@ -297,13 +298,11 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
         raise InputError(f"{cfg.path}: fit.free: {err.args[0]}") from None
     check_truth(capture, free, capture.path or cfg.capture, cfg.material)
     check_uvs(capture.scene, cfg.material)
-    from ..render.scene import back_face_warning  # Mitsuba's: its variant is set by now
+    from ..render.scene import view_warnings  # Mitsuba's: its variant is set by now
 
     views = [(v.name, v.camera) for v in capture.views]
-    message = (
-        back_face_warning(capture.scene, views, capture.path or cfg.capture) if trace else None
-    )
-    if message:
+    where = capture.path or cfg.capture
+    for message in view_warnings(capture.scene, views, where) if trace else ():
         log.warning(message)
         capture.warnings.append(message)  # in the summary and the report too
     problem = Problem(fitted, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)

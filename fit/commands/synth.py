@@ -63,13 +63,21 @@ def synthesize(
         raise ValueError(f"format {fmt!r}; choose one of {', '.join(FORMATS)}")
     suffix, encoding = FORMATS[fmt]
     rng = np.random.default_rng(seed)
+    # the capture's own files: a scene file of one of these names is copied under another (an
+    # environment map named view_00.exr was overwritten by the first view, lighting the capture)
+    written = {f"view_{i:02d}.{suffix}" for i in range(len(scene.cameras))} | {"capture.toml"}
+
+    def free_name(path: Path) -> str:
+        return path.name if path.name not in written else f"scene-{path.name}"
+
     with atomic_path(out, folder=True, replace=replace) as staging:
         # Files the scene refers to move into the capture folder
         if isinstance(scene.geometry, ObjFile):
-            shutil.copy(scene.geometry.path, staging / scene.geometry.path.name)
-            scene = _replace_geometry(scene, staging / scene.geometry.path.name)
+            target = staging / free_name(scene.geometry.path)
+            shutil.copy(scene.geometry.path, target)
+            scene = _replace_geometry(scene, target)
         if isinstance(scene.environment, EnvMap):
-            target = staging / scene.environment.path.name
+            target = staging / free_name(scene.environment.path)
             shutil.copy(scene.environment.path, target)
             scene = _replace_env(scene, target)
         views = []

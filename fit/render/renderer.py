@@ -15,6 +15,7 @@ import mitsuba as mi
 import numpy as np
 
 from captures.capture import Capture
+from captures.scene import bounding_sphere
 
 from ..material import Free, Material
 from .scene import MATERIAL_PREFIX, batch_sensor_dict, load_scene, scene_dict, sensor_dict
@@ -239,7 +240,8 @@ class _Group:
     def __init__(self, capture: Capture, views: list[int], material, free: list[Free], freeze):
         scene = scene_dict(capture.scene_of(views[0]), material, 0, 1)
         cameras = [capture.views[i].camera for i in views]
-        sensors = [sensor_dict(c, 1) for c in cameras]
+        bounds = bounding_sphere(capture.scene.geometry)
+        sensors = [sensor_dict(c, 1, bounds) for c in cameras]
         if len(views) == 1:
             parts = [(0, views)]
         elif any(d["type"] != "perspective" for d in sensors):
@@ -253,7 +255,7 @@ class _Group:
             scene.update({f"sensor_{k:04d}": d for k, d in enumerate(sensors)})
             parts = [(k, [v]) for k, v in enumerate(views)]
         else:
-            scene["sensor"] = batch_sensor_dict(cameras, 1)
+            scene["sensor"] = batch_sensor_dict(cameras, 1, bounds)
             parts = [(0, views)]
         self.views, self.scene = views, load_scene(scene)
         self.params = mi.traverse(self.scene)

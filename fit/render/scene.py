@@ -17,6 +17,7 @@ from captures.scene import (
     PointLight,
     RectLight,
     Sphere,
+    bounding_sphere,
 )
 
 from ..material import Material
@@ -44,8 +45,24 @@ def load_scene(scene: dict) -> mi.Scene:
     return mi.parser.instantiate(config, state)
 
 
-def sensor_dict(camera: Camera, spp: int) -> dict:
-    """A perspective (pinhole or thin-lens) or orthographic sensor, box pixel filter."""
+def clip_range(camera: Camera, bounds: tuple[np.ndarray, float] | None = None) -> tuple:
+    """(near, far) clip distances on the scene's scale: a thousandth of the distance to the
+    target or, nearer, to the far side of the object's bounding sphere `bounds` (centre,
+    radius), and at least 1e4 and twice that far side (Mitsuba's defaults, 0.01 and 1e4, are
+    metres: an object 5 mm from the camera, a scene in millimetres, rendered empty; a target
+    set far beyond the object along the view put the near plane past it)."""
+    origin = np.asarray(camera.origin, float)
+    scale = float(np.linalg.norm(np.subtract(camera.target, origin)))
+    reach = 0.0
+    if bounds is not None:
+        reach = float(np.linalg.norm(np.asarray(bounds[0], float) - origin)) + bounds[1]
+        scale = min(scale, reach)
+    return 1e-3 * scale, max(1e4, 1e3 * scale, 2.0 * reach)
+
+
+def sensor_dict(camera: Camera, spp: int, bounds: tuple[np.ndarray, float] | None = None) -> dict:
+    """A perspective (pinhole or thin-lens) or orthographic sensor, box pixel filter, its clip
+    distances from the object's bounding sphere `bounds` where given (`clip_range`)."""
     to_world = mi.ScalarTransform4f().look_at(
         origin=camera.origin, target=camera.target, up=camera.up
     )
@@ -59,10 +76,8 @@ def sensor_dict(camera: Camera, spp: int) -> dict:
         },
         "sampler": {"type": "independent", "sample_count": spp},
     }
-    # clip planes on the scene's scale (Mitsuba's defaults, 0.01 and 1e4, are metres: an object
-    # 5 mm from the camera, a scene in millimetres, rendered empty)
-    distance = float(np.linalg.norm(np.subtract(camera.target, camera.origin)))
-    out.update({"near_clip": 1e-3 * distance, "far_clip": max(1e4, 1e3 * distance)})
+    near, far = clip_range(camera, bounds)
+    out.update({"near_clip": near, "far_clip": far})
     if camera.kind == "orthographic":
         half = camera.ortho_width / 2  # Mitsuba's view spans [-1, 1] horizontally
         return {
@@ -196,7 +211,8 @@ def back_faces(scene: Scene, cameras: list[Camera]) -> list[tuple[int, int]]:
     left out) with every camera a sensor. The materials are one-sided: such pixels render black
     (an open mesh seen from inside, a mesh whose normals point inward). Pixels on a grid of at
     most `BACK_FACE_SIDE` a side."""
-    sensors = {f"sensor_{k:04d}": sensor_dict(c, 1) for k, c in enumerate(cameras)}
+    bounds = bounding_sphere(scene.geometry)
+    sensors = {f"sensor_{k:04d}": sensor_dict(c, 1, bounds) for k, c in enumerate(cameras)}
     bare = geometry_dict(scene, mi.load_dict({"type": "diffuse"}))
     loaded = load_scene({"type": "scene", "object": bare, **sensors})
     out = []
@@ -213,11 +229,35 @@ def back_faces(scene: Scene, cameras: list[Camera]) -> list[tuple[int, int]]:
     return out
 
 
-def back_face_warning(scene: Scene, views: list[tuple[str, Camera]], where: str) -> str | None:
-    """A line naming the views (name, camera) that see more than `BACK_FACE_SHARE` of the object
-    from behind, or None (views sharing a camera, as photometric stereo's, traced once)."""
+def view_warnings(scene: Scene, views: list[tuple[str, Camera]], where: str) -> list[str]:
+    """What the views' pixel centres traced through the object say, as lines: views that show
+    no object at any traced pixel centre (an object under a pixel: cameras and mesh in other
+    units, or out of view), then `back_face_warning`'s (views sharing a camera, as photometric
+    stereo's, traced once)."""
     cameras = list(dict.fromkeys(camera for _, camera in views))
     traced = dict(zip(cameras, back_faces(scene, cameras), strict=True))
+    out = []
+    empty = [name for name, camera in views if traced[camera][0] == 0]
+    if empty:
+        out.append(
+            f"{where}: {len(empty)} of {len(views)} views show the object at none of their "
+            f"traced pixel centres (in {listing(empty)}): it is smaller than a pixel there or "
+            "out of view, and those views say nothing about its material; check the cameras' "
+            "and the geometry's units (metres both) and where the cameras look"
+        )
+    message = back_face_warning(scene, views, where, traced)
+    return out + ([message] if message else [])
+
+
+def back_face_warning(
+    scene: Scene, views: list[tuple[str, Camera]], where: str, traced: dict | None = None
+) -> str | None:
+    """A line naming the views (name, camera) that see more than `BACK_FACE_SHARE` of the object
+    from behind, or None (views sharing a camera, as photometric stereo's, traced once; `traced`:
+    `back_faces` of each camera, when already traced)."""
+    if traced is None:
+        cameras = list(dict.fromkeys(camera for _, camera in views))
+        traced = dict(zip(cameras, back_faces(scene, cameras), strict=True))
     shares = {}
     for name, camera in views:
         hits, behind = traced[camera]
@@ -265,7 +305,7 @@ def scene_dict(scene: Scene, bsdf: Material | dict | mi.BSDF, view: int = 0, spp
     out = {
         "type": "scene",
         "integrator": {"type": scene.integrator, "max_depth": scene.max_depth},
-        "sensor": sensor_dict(scene.cameras[view], spp),
+        "sensor": sensor_dict(scene.cameras[view], spp, bounding_sphere(scene.geometry)),
         "object": geometry_dict(scene, material),
     }
     for i, light in enumerate(scene.lights):
@@ -276,13 +316,13 @@ def scene_dict(scene: Scene, bsdf: Material | dict | mi.BSDF, view: int = 0, spp
     return out
 
 
-def batch_sensor_dict(cameras, spp: int) -> dict:
+def batch_sensor_dict(cameras, spp: int, bounds: tuple[np.ndarray, float] | None = None) -> dict:
     """One `batch` sensor rendering same-sized cameras side by side into one film (width: the
     cameras' widths together): all views of a capture in one kernel, compiled once."""
     width, height = cameras[0].width, cameras[0].height
     children = {}
     for i, camera in enumerate(cameras):
-        child = sensor_dict(camera, spp)
+        child = sensor_dict(camera, spp, bounds)
         del child["film"], child["sampler"]
         children[f"view_{i:04d}"] = child  # names sort as the views do
     film = sensor_dict(cameras[0], spp)["film"]
@@ -302,7 +342,7 @@ def coverage_dict(scene: Scene, view: int = 0, spp: int = 64) -> dict:
     return {
         "type": "scene",
         "integrator": {"type": "path", "max_depth": 1},  # emitters seen directly, nothing else
-        "sensor": sensor_dict(scene.cameras[view], spp),
+        "sensor": sensor_dict(scene.cameras[view], spp, bounding_sphere(scene.geometry)),
         "object": geometry_dict(scene, black, emitter),
     }
 

@@ -199,22 +199,30 @@ def test_point_light_power_is_radiometric(tmp_path):
 
 
 @pytest.mark.parametrize("kind", ["perspective", "orthographic"])
-@pytest.mark.parametrize("scale", [1e-3, 1e3])
+@pytest.mark.parametrize("scale", [1e-3, 1e3, "target 1e4x farther", "target 1e7x nearer"])
 def test_a_scene_of_any_scale_renders_its_object(kind, scale):
     """The glazed sphere and its cameras scaled down (the camera 4 mm from a 1 mm sphere: the
     default near clip, 0.01 m, rendered only the background) or up (kilometres, within the
-    far clip)."""
+    far clip); its target far beyond the sphere or right before the camera (the clip range
+    follows the object, not only the target)."""
     import dataclasses
 
     from captures.scene import Sphere
 
     cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
+    origin = np.asarray(cfg.scene.cameras[0].origin)
+    target = np.asarray(cfg.scene.cameras[0].target)
+    if isinstance(scale, str):  # the same view, its target moved along it (5.1 m away):
+        # 51 km beyond put the near clip (a thousandth of the target's distance) past the
+        # sphere; 0.5 um before the camera, the far clip (1e4) stays beyond it either way
+        factor = 1e4 if "farther" in scale else 1e-7
+        target, scale = origin + factor * (target - origin), 1.0
     camera = dataclasses.replace(
         cfg.scene.cameras[0],
         width=16,
         height=12,
-        origin=tuple(scale * c for c in cfg.scene.cameras[0].origin),
-        target=tuple(scale * c for c in cfg.scene.cameras[0].target),
+        origin=tuple(float(scale * c) for c in origin),
+        target=tuple(float(scale * c) for c in target),
         kind=kind,
         ortho_width=3.0 * scale,
     )
@@ -375,7 +383,7 @@ def test_faces_seen_from_behind_are_warned(tmp_path, geometry, origin, seen_from
     behind (an open mesh from its inside, normals pointing inward) renders it black; the fit
     warns, naming the views. A mesh wound inside out whose `vn` normals point out renders lit,
     and is not warned."""
-    from fit.render.scene import back_face_warning
+    from fit.render.scene import back_face_warning, view_warnings
 
     open_cylinder(tmp_path / "tube.obj")
     open_cylinder(tmp_path / "inward.obj", inward=True)
@@ -396,6 +404,26 @@ def test_faces_seen_from_behind_are_warned(tmp_path, geometry, origin, seen_from
     views = [("v0", scene.cameras[0]), ("v1", scene.cameras[0])]  # sharing a camera
     warning = back_face_warning(scene, views, "cap")
     assert (warning is not None) == seen_from_behind, warning
+    assert view_warnings(scene, views, "cap") == ([warning] if warning else [])
     if seen_from_behind:
         assert warning.startswith("cap: 2 of 2 views see the object's faces from behind")
         assert "in v0, v1;" in warning
+
+
+def test_views_that_show_no_object_are_warned(tmp_path):
+    """A view whose object is under a pixel (cameras in millimetres around a 1 m sphere: 500 m
+    away) shows it at no traced pixel centre: the fit warns, naming the view (it fitted the
+    view's background without a word, every parameter then undetermined)."""
+    from fit.render.scene import view_warnings
+
+    near = {"origin": [0, -5, 1], "target": [0, 0, 0], "fov_x_deg": 40, "width": 32, "height": 24}
+    far = {**near, "origin": [0, -500, 100]}
+    light = {"center": [2, -2, 4], "target": [0, 0, 0], "size": [0.5, 0.2], "power": 10.0}
+    scene = parse_scene(
+        {"geometry": "sphere", "cameras": [near, far], "lights": [light]}, tmp_path / "s.toml"
+    )
+    views = [("near", scene.cameras[0]), ("far", scene.cameras[1])]
+    (warning,) = view_warnings(scene, views, "cap")
+    assert warning.startswith("cap: 1 of 2 views show the object at none of their traced pixel")
+    assert "(in far)" in warning and "units" in warning
+    assert view_warnings(scene, views[:1], "cap") == []

@@ -148,3 +148,21 @@ def test_synth_records_the_diffuse_lobe_its_truth_belongs_to(tmp_path, caplog):
     check_truth(capture, [], out, build_material({**table, "diffuse": "qualitative"}, "<fit>"))
     assert "glaze.sigma" not in capture.truth
     assert "set diffuse = 'eon' on the glaze layer" in caplog.records[0].getMessage()
+
+
+def test_synth_keeps_a_scene_file_named_like_a_view(tmp_path):
+    """An environment map named `view_00.exr` is copied under another name: the first view's
+    image overwrote it, and the capture was then lit by its own photo."""
+    from captures.images import write_image
+    from captures.scene import EnvMap
+
+    cfg, scene = small_sphere()
+    sky = np.full((8, 16, 3), 0.2, np.float32)
+    (tmp_path / "sky").mkdir()
+    write_image(tmp_path / "sky" / "view_00.exr", sky)
+    scene = dataclasses.replace(scene, environment=EnvMap(tmp_path / "sky" / "view_00.exr", 1.0))
+    out = synthesize(scene, cfg.material, tmp_path / "cap", spp=2)
+    capture = load_capture(out)
+    assert capture.scene.environment.path.name == "scene-view_00.exr"
+    np.testing.assert_array_equal(read_image(capture.scene.environment.path), sky)
+    assert read_image(out / "view_00.exr").shape == (30, 40, 3)
