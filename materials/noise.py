@@ -12,7 +12,11 @@ import mitsuba as mi
 
 def _hash(ix, iy, seed: int):
     """32-bit integer hash of lattice coordinates and a seed (a 'lowbias32'-style mixer)."""
-    h = mi.UInt32(ix) * 0x8DA6B343 ^ mi.UInt32(iy) * 0xD8163841 ^ mi.UInt32(seed) * 0xCB1AB31F
+    h = (
+        mi.UInt32(ix) * 0x8DA6B343
+        ^ mi.UInt32(iy) * 0xD8163841
+        ^ mi.UInt32(int(seed) % 2**32) * 0xCB1AB31F
+    )
     h ^= h >> 16
     h *= 0x7FEB352D
     h ^= h >> 15
@@ -55,7 +59,8 @@ def fbm(uv, scale: int, octaves: int, seed: int = 0):
     total, norm, amplitude = mi.Float(0.0), 0.0, 1.0
     for octave in range(octaves):
         cells = scale * 2**octave
-        total += amplitude * perlin(mi.Point2f(uv) * cells, cells, seed * 131 + octave)
+        # each octave's seed wraps to 32 bits (seeds above 2^32 / 131 overflowed UInt32)
+        total += amplitude * perlin(mi.Point2f(uv) * cells, cells, (seed * 131 + octave) % 2**32)
         norm += amplitude
         amplitude *= 0.5
     return 0.5 + 0.5 * total / norm
