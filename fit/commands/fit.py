@@ -54,6 +54,7 @@ from ..output import ViewPanel, write_report, write_text
 from ..solvers import Checkpoint, Problem, Result, run_schedule
 from ..solvers.gn import AUTO_SPLIT
 from ..solvers.schedule import check_saved
+from ..solvers.uncertainty import forward_mode_refusal
 
 log = logging.getLogger(__name__)
 
@@ -306,7 +307,15 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
         log.warning(message)
         capture.warnings.append(message)  # in the summary and the report too
     problem = Problem(fitted, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)
+    refusal = forward_mode_refusal(problem)
     for k, phase in enumerate(cfg.phases):  # fail before any work, naming the phase
+        if refusal and phase.solver in ("gn", "lm"):
+            given = "" if "phases" in cfg.settings.model_fields_set else " (the default schedule)"
+            raise InputError(
+                f"{cfg.path}: fit.phases[{k}].solver = {phase.solver!r}{given}: {refusal}, and "
+                "it renders a forward-mode Jacobian; give [[fit.phases]] of adam only (e.g. "
+                'solver = "adam", steps = 200, spp = 16)'
+            )
         try:
             views = problem.at(phase.downscale).views
         except CaptureError as err:

@@ -17,7 +17,7 @@ from ..material import to_physical
 from .adam import averaged_result
 from .base import AbstractSolver, Options, Result
 from .problem import jax_seed, noise_ratio, residuals
-from .uncertainty import CROSS_SEED_OFFSET, MAX_UNCERTAINTY_PARAMS, linear_model
+from .uncertainty import CROSS_SEED_OFFSET, forward_mode_refusal, linear_model
 
 
 class GNOptions(Options):
@@ -167,10 +167,11 @@ class GaussNewton(AbstractSolver):
         resume=None,
         offer=None,
     ) -> Result:
-        if problem.n_material > MAX_UNCERTAINTY_PARAMS:
+        refusal = forward_mode_refusal(problem)
+        if refusal:
             raise InputError(
-                f"solver gn: {problem.n_material} free components (a texture?); its curvature "
-                "renders one forward pass per component: use adam for textures"
+                f"solver gn: {refusal}, and its curvature is a forward-mode Jacobian: use adam "
+                "for textures"
             )
         u = np.asarray(u0 if resume is None else resume["u"], np.float32)
         note = ""

@@ -9,9 +9,12 @@ import numpy as np
 import optimistix as optx
 from pydantic import Field, PositiveInt
 
+from captures.errors import InputError
+
 from ..limits import MAX_SPP
 from .base import AbstractSolver, Options, Result, optimistix_result
 from .problem import jax_seed, residuals
+from .uncertainty import forward_mode_refusal
 
 
 class LMOptions(Options):
@@ -35,6 +38,12 @@ class LevenbergMarquardt(AbstractSolver):
     def run(
         self, problem, u0, *, steps, spp, seed, downscale, options, progress=None, **_
     ) -> Result:
+        refusal = forward_mode_refusal(problem)
+        if refusal:
+            raise InputError(
+                f"solver lm: {refusal}, and it renders a forward-mode Jacobian: use adam for "
+                "textures"
+            )
         render = problem.render_fn("jacobian", spp, downscale, options.jacobian_spp)
         independent = options.jacobian_spp is not None
         residual = residuals(problem, render, downscale, independent_gains=independent)

@@ -27,7 +27,7 @@ from .base import Options, Outcome, PhaseReport, Result
 from .checkpoint import Checkpoint
 from .problem import Problem
 from .registry import SOLVERS
-from .uncertainty import MAX_UNCERTAINTY_PARAMS, uncertainty
+from .uncertainty import forward_mode_refusal, uncertainty
 
 
 class Phase(BaseModel):
@@ -209,8 +209,9 @@ def run_schedule(
     resume: bool = False,
 ) -> Result:
     """Run `phases` in turn from `start` (phase k uses seed + k), then the uncertainty at the
-    result (up to `MAX_UNCERTAINTY_PARAMS` components). `progress(phase, step, loss)` after
-    every step a solver reports and at the end of each phase. Each phase's report (outcome,
+    result (where `forward_mode_refusal` allows it: no texture, at most
+    `MAX_UNCERTAINTY_PARAMS` components). `progress(phase, step, loss)` after every step a
+    solver reports and at the end of each phase. Each phase's report (outcome,
     steps, rejected steps, wall time) is in the result's `reports`.
 
     With a `checkpoint` the state is saved every interval of work and at each phase's end; with
@@ -280,7 +281,7 @@ def run_schedule(
             if checkpoint.stop:
                 raise KeyboardInterrupt
     result.steps, result.history, result.phase_ends, result.reports = steps, history, ends, reports
-    if len(u) <= MAX_UNCERTAINTY_PARAMS:
+    if forward_mode_refusal(problem) is None:  # else no sd: std stays None
         result.std, result.correlation, result.poorly_determined = uncertainty(
             problem,
             np.asarray(u),

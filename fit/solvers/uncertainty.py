@@ -15,6 +15,20 @@ from .problem import Problem, residuals
 MAX_UNCERTAINTY_PARAMS = 64
 
 
+def forward_mode_refusal(problem: Problem) -> str | None:
+    """Why the forward-mode Jacobian (the solvers `gn` and `lm`, the uncertainty) cannot be
+    rendered for `problem`, or None: a free texture (Mitsuba 3.9's forward mode through a
+    bitmap's texels fails inside its integrator's loop: "tried to forward-propagate derivatives
+    across edge ... outside of the current dr.isolate_grad() scope", an 8x8 mask measured), or
+    more than `MAX_UNCERTAINTY_PARAMS` components (one forward pass each)."""
+    textures = [f.key for f in problem.free if f.shape]
+    if textures:
+        return f"{', '.join(textures)} {'is a texture' if len(textures) == 1 else 'are textures'}"
+    if problem.n_material > MAX_UNCERTAINTY_PARAMS:
+        return f"{problem.n_material} free components (one forward-mode render each)"
+    return None
+
+
 #: The second Jacobian render of the uncertainty uses the seed plus this offset.
 CROSS_SEED_OFFSET = 0xC2055
 
