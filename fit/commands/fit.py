@@ -469,12 +469,15 @@ def _write(
     summary = _summary(cfg, capture, held, start, result, wall, panels, interrupted)
     if starts is not None:
         summary["starts"] = starts
-    fitted_material = cfg.material.with_values(result.values)
+    for key, texels in textures.items():
+        write_image(out / f"{key}.exr", texels)
+    # the fitted textures' files: the report's masks are baked from them (it showed the start's)
+    fitted_material = cfg.material.with_values(result.values).with_textures(
+        {key: out / f"{key}.exr" for key in textures}
+    )
     if interrupted:  # no preset of a fit that did not end (nor an earlier run's beside it)
         (out / "preset.toml").unlink(missing_ok=True)
     else:
-        for key, texels in textures.items():
-            write_image(out / f"{key}.exr", texels)
         std = {k: v for k, v in (result.std or {}).items() if k in cfg.material.params}
         save_preset(
             fitted_material,

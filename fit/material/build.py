@@ -98,10 +98,11 @@ class Material:
         """Each parameter's value by key (texture files left out)."""
         return {k: p.value for k, p in self.params.items() if p.value is not None}
 
-    def table(self, texture_name=str) -> dict:
+    def table(self, texture_name=lambda key, path: str(path)) -> dict:
         """The complete `[material]` table of what was built: every layer's every declared
-        parameter and option (unbuilt optional ones as 0). `texture_name(path)` gives the text a
-        texture file is written as (default: the path)."""
+        parameter and option (unbuilt optional ones as 0). `texture_name(key, path)` gives the
+        text the texture file of parameter `key` is written as (default: the path; two keys may
+        share one file)."""
 
         def plugin(owner: str, decl: PluginDecl, mask: bool = False) -> dict:
             out: dict = {}
@@ -110,7 +111,7 @@ class Material:
                 if p is None:  # an optional parameter that is off
                     out[name] = 0.0
                 else:
-                    out[name] = texture_name(p.texture) if p.value is None else p.value
+                    out[name] = texture_name(p.key, p.texture) if p.value is None else p.value
             for name, option in decl.options.items():
                 out[name] = self.options.get(key(owner, name, mask), option.default)
             return out
@@ -125,7 +126,7 @@ class Material:
                 mask = plugin(name, FBM, mask=True)
                 texture = self.params.get(key(name, "texture", True))
                 if texture is not None:
-                    mask["texture"] = texture_name(texture.texture)
+                    mask["texture"] = texture_name(texture.key, texture.texture)
                 layer["mask"] = mask
             layers.append(layer)
         bump = self.params.get("bump")
@@ -148,6 +149,17 @@ class Material:
                 layer = next(t for t in table["layers"] if t["name"] == k.owner)
                 where = layer["mask"] if k.mask else layer
             where[k.name] = [float(x) for x in value] if isinstance(value, list) else float(value)
+        built = build_material(table, "<fitted material>")
+        assert built is not None
+        return built
+
+    def with_textures(self, files: dict[str, Path]) -> Material:
+        """This material with the texture parameters named in `files` (by key) read from those
+        files (a fit's fitted texels)."""
+        unknown = sorted(set(files) - set(self.texture_files()))
+        if unknown:
+            raise KeyError(f"no texture parameter {', '.join(unknown)}")
+        table = self.table(lambda key, path: str(Path(files.get(key, path)).resolve()))
         built = build_material(table, "<fitted material>")
         assert built is not None
         return built

@@ -100,7 +100,7 @@ def save_preset(
     if path.is_dir():
         raise ConfigError(f"{path}: is a folder; give the preset's file name")
     textures = textures or {}
-    written: dict[Path, str] = {}
+    written: dict[str, str] = {}  # by key: two masks may share one file, fitted apart
     for key, source in material.texture_files().items():
         fitted = textures.get(key)
         suffix = ".exr" if fitted is not None else source.suffix.lower()
@@ -110,14 +110,14 @@ def save_preset(
         elif target.resolve() != source.resolve():
             with atomic_path(target) as tmp:
                 shutil.copyfile(source, tmp)
-        written[source] = target.name
+        written[key] = target.name
     unknown = sorted(set(textures) - set(material.texture_files()))
     if unknown:
         raise ConfigError(f"{path}: no texture parameter {', '.join(unknown)} to write")
     doc = {
         "schema": PRESET_SCHEMA,
         "provenance": _clean(provenance or {}),
-        "material": _clean(material.table(lambda p: written[p])),
+        "material": _clean(material.table(lambda key, path: written[key])),
     }
     return write_text(path, tomli_w.dumps(doc))
 

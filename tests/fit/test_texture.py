@@ -120,3 +120,48 @@ def test_a_small_texture_fits_to_its_end_without_forward_mode(tmp_path):
         prepare(load_fit_config(tmp_path / "fit.toml"), trace=False)
     message = str(err.value)
     assert "fit.phases[1].solver = 'gn' (the default schedule): glaze.mask.texture is a" in message
+
+
+def test_two_masks_sharing_a_file_keep_their_own_fitted_texels(tmp_path):
+    """Glaze and lime masks read one painted file; the glaze's is fitted. The preset named the
+    lime's unfitted copy for both (its files were kept by source path), and the report's mask
+    panel was baked from the starting texture: the fitted texels reach the preset, the lime
+    keeps the file's, and the report bakes the fitted one."""
+    from captures.images import read_image
+    from fit.commands.fit import run_fit
+    from fit.commands.synth import synthesize
+    from fit.config import load_fit_config
+    from fit.material import load_preset, save_preset
+
+    target = capture(tmp_path)
+    painted = np.linspace(0.2, 0.8, 64, dtype=np.float32).reshape(8, 8, 1)
+    write_image(tmp_path / "paint.exr", painted)
+    table = material(tmp_path / "paint.exr").table()
+    lime = {"name": "lime", "type": "oren_nayar", "reflectance": [0.86, 0.85, 0.8]}
+    lime["mask"] = {"texture": str(tmp_path / "paint.exr"), "threshold": 0.0, "seed": 3}
+    table["layers"].append(lime)
+    shared = build_material(table, tmp_path / "material.toml")
+    synthesize(target.scene, shared, tmp_path / "cap", spp=1)
+    save_preset(shared, tmp_path / "start.toml")
+    (tmp_path / "fit.toml").write_text(
+        'capture = "cap"\nmaterial = "start.toml"\n[fit]\nfree = ["glaze.mask.texture"]\n'
+        'uncertainty_spp = 1\n[[fit.phases]]\nsolver = "adam"\nsteps = 3\nspp = 1\nlr = 0.3\n'
+    )
+    cfg = load_fit_config(tmp_path / "fit.toml")
+    summary = run_fit(cfg, tmp_path / "run")
+    fitted = np.asarray(summary["values"]["glaze.mask.texture"], np.float32).reshape(8, 8, 1)
+    assert np.abs(fitted - painted).max() > 0.05  # the steps moved it
+    preset = load_preset(tmp_path / "run" / "preset.toml").material
+    files = preset.texture_files()
+    assert files["glaze.mask.texture"] != files["lime.mask.texture"]
+    np.testing.assert_allclose(read_image(files["glaze.mask.texture"]), fitted, atol=1e-6)
+    np.testing.assert_allclose(read_image(files["lime.mask.texture"]), painted, atol=1e-6)
+    # the report's mask is the fitted texture (x fbm): baked again from the preset, it matches
+    from fit.commands.fit import _masks
+
+    report = read_image(tmp_path / "run" / "report" / "mask-00-glaze.mask.png")
+    baked_fitted, baked_start = _masks(preset)["glaze.mask"], _masks(shared)["glaze.mask"]
+    grey = report if report.ndim == 2 else report[..., 0]
+    assert grey.shape == baked_fitted.shape
+    fitted_off = np.abs(grey - baked_fitted).mean()
+    assert fitted_off < 0.5 * np.abs(grey - baked_start).mean(), fitted_off
