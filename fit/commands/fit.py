@@ -21,9 +21,11 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import difflib
+import html
 import json
 import logging
 import math
+import re
 import signal
 import threading
 import time
@@ -498,8 +500,10 @@ def _write(
 
 def _outputs(out: Path) -> dict[Path, int]:
     """The images an earlier fit wrote into this run folder that are there now, with their
-    inodes: the report's PNGs, the texture files its `preset.toml` names, and fitted textures
-    named by a parameter of its `summary.json` (`<key>.exr`). Nothing else a user keeps there."""
+    inodes: the PNGs its `report.html` shows, the texture files its `preset.toml` names as the
+    preset writes them (`preset.<key>.<ext>`), and fitted textures named by a parameter of its
+    `summary.json` (`<key>.exr`). Nothing else a user keeps there (a PNG of their own in
+    `report/`, a texture a hand-edited preset names: both were deleted by `--force`)."""
     try:
         keys = set(json.loads((out / "summary.json").read_text())["values"])
     except (OSError, ValueError, KeyError, TypeError):
@@ -508,7 +512,13 @@ def _outputs(out: Path) -> dict[Path, int]:
         preset = tomllib.loads((out / "preset.toml").read_text())
     except (OSError, ValueError):
         preset = {}
-    paths = [*out.glob("report/*.png"), *(out / name for name in _images_named(preset))]
+    try:
+        page = (out / "report.html").read_text(errors="replace")
+    except OSError:
+        page = ""
+    shown = {html.unescape(name) for name in re.findall(r"src='report/([^'/]+\.png)'", page)}
+    paths = [out / "report" / name for name in sorted(shown)]
+    paths += [out / name for name in _images_named(preset) if name.startswith("preset.")]
     paths += [p for p in out.glob("*.exr") if p.stem in keys]
     return {p: p.stat().st_ino for p in paths if p.is_file()}
 

@@ -1474,15 +1474,19 @@ def test_one_view_fit_writes_valid_json(base, tmp_path, capsys):
     assert summary["truth"]["glaze.roughness"] == 0.0625
     # --force over it: what the earlier run wrote and this one does not is gone, the user's own
     # files stay (an image too), nothing of this run is missing
-    (work / "run" / "report" / "view-07-gone.png").write_bytes(b"old")
+    (work / "run" / "report" / "view-07-gone.png").write_bytes(b"old")  # the old report's:
+    with open(work / "run" / "report.html", "a") as page:
+        page.write("<img src='report/view-07-gone.png' alt='view 07'>")
+    (work / "run" / "report" / "my-notes.png").write_bytes(b"mine")  # the user's, shown nowhere
     (work / "run" / "glaze.mask.texture.exr").write_bytes(b"old")  # as if fitted back then
     summary["values"]["glaze.mask.texture"] = 0.5
     (work / "run" / "summary.json").write_text(json.dumps(summary))
     (work / "run" / "notes.txt").write_text("mine")
     (work / "run" / "my_photo.exr").write_bytes(b"mine")
     (work / "run" / "preset.glaze.old.png").write_bytes(b"old")  # a texture its preset named
+    (work / "run" / "my-pigment.png").write_bytes(b"mine")  # a hand-edited preset's texture
     with open(work / "run" / "preset.toml", "a") as preset:
-        preset.write('\n[extra]\ntexture = "preset.glaze.old.png"\n')
+        preset.write('\n[extra]\ntexture = "preset.glaze.old.png"\nmine = "my-pigment.png"\n')
     written = sorted(p.name for p in (work / "run").rglob("*"))
     code, _, stderr = run(["fit", work / "fit.toml", "--out", work / "run", "--force"], capsys)
     assert code == 0, stderr
@@ -1491,6 +1495,8 @@ def test_one_view_fit_writes_valid_json(base, tmp_path, capsys):
     assert not (work / "run" / "preset.glaze.old.png").exists()
     assert (work / "run" / "notes.txt").read_text() == "mine"
     assert (work / "run" / "my_photo.exr").read_bytes() == b"mine"
+    assert (work / "run" / "report" / "my-notes.png").read_bytes() == b"mine"
+    assert (work / "run" / "my-pigment.png").read_bytes() == b"mine"
     gone = ("view-07-gone.png", "glaze.mask.texture.exr", "preset.glaze.old.png")
     expected = [n for n in written if n not in gone]
     assert sorted(p.name for p in (work / "run").rglob("*")) == expected
