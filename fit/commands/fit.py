@@ -37,7 +37,9 @@ import numpy as np
 
 from captures import CaptureError, InputError, open_capture
 from captures.capture import MIN_SIDE, Capture
+from captures.errors import listing
 from captures.images import TEXTURE_SUFFIXES, write_image
+from captures.scene import EnvMap
 from materials.params import LAYER_PLUGINS, ChoiceOption
 
 from ..config import FitConfig, config_identity
@@ -139,12 +141,16 @@ CHOICES = {
 }
 
 
-def check_truth(capture: Capture, free: list[Free], path, material=None) -> None:
+def check_truth(
+    capture: Capture, free: list[Free], path, material=None, gained: dict[str, int] | None = None
+) -> None:
     """A `[truth]` value of the wrong size fails before any work (not after the fit); a key
     that names no parameter of the fitted `material` is a warning (it is not scored), with the
     closest key where one is near (a typo). Where the truth is a model's other than the
     material's (`Capture.truth_options`: a peer's EON diffuse lobe), a warning names the option
-    to set and the values it depends on are not scored."""
+    to set and the values it depends on are not scored. A view's gain (`gain.<view>`) is scored
+    where `gained` (view name -> gain channels) fits it, else warned and not scored."""
+    _check_gain_truth(capture, path, gained or {})
     if material is not None:
         for key, choice in capture.truth_options.items():
             layer, _, option = key.rpartition(".")
@@ -174,7 +180,11 @@ def check_truth(capture: Capture, free: list[Free], path, material=None) -> None
             log.warning(message)
             capture.warnings.append(message)  # in the summary and the report too
         known = sorted(material.params)
-        unknown = [k for k in capture.truth if k not in known and not _emitter_key(path, k)]
+        unknown = [
+            k
+            for k in capture.truth
+            if k not in known and not k.startswith("gain.") and not _emitter_key(path, k)
+        ]
         others = []
         for name in unknown:
             near = difflib.get_close_matches(name, known, n=1, cutoff=0.8)
@@ -200,6 +210,46 @@ def check_truth(capture: Capture, free: list[Free], path, material=None) -> None
             f.spec.check(value, f"{path}: truth.{f.key}")
         except ValueError as err:
             raise CaptureError(str(err)) from None
+
+
+def _check_emitters(capture: Capture, fitted: Capture, free: list[Free], path) -> None:
+    """A free emitter scale needs its emitters in every fitted view's scene (it was an internal
+    error at the first render: "not in the scene of view ... (nothing to fit)")."""
+    keys = {f.emitter: f.key for f in free if f.emitter}
+    env = capture.scene.environment
+    if "environment" in keys and not (isinstance(env, EnvMap) or any(env)):
+        raise InputError(
+            f"{path}: fit.free: {keys['environment']}: the capture's scene has no environment "
+            "(black): nothing to scale; drop the key, or give the scene an environment"
+        )
+    if "lights" in keys:
+        dark = [
+            v.name
+            for v in fitted.views
+            if not (v.lights if v.lights is not None else capture.scene.lights)
+        ]
+        if dark:
+            raise InputError(
+                f"{path}: fit.free: {keys['lights']}: {listing(dark)} of the capture "
+                f"{'has' if len(dark) == 1 else 'have'} no light: nothing to scale; drop the key"
+            )
+
+
+def _check_gain_truth(capture: Capture, path, gained: dict[str, int]) -> None:
+    """`gain.<view>` truths: of the size its fitted gain has (1 or 3 values), else an error
+    before any work (after the fit, an internal error); of a view with no fitted gain (gains
+    off, a held-out view, no such view), warned and left out of the scores."""
+    for key in [k for k in capture.truth if k.startswith("gain.")]:
+        view, size = key.removeprefix("gain."), gained.get(key.removeprefix("gain."))
+        if size is None:
+            why = "gains are not fitted (fit.gains)" if not gained else f"no fitted view {view}"
+            log.warning(f"{path}: truth.{key}: not scored ({why})")
+            del capture.truth[key]
+        elif np.size(capture.truth[key]) != size:
+            raise CaptureError(
+                f"{path}: truth.{key}: has {np.size(capture.truth[key])} value(s) but the fitted "
+                f"gain has {size}; give {'one number' if size == 1 else f'{size} numbers'}"
+            )
 
 
 def _emitter_key(path, key: str) -> bool:
@@ -299,7 +349,10 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
         free = resolve(cfg.material, cfg.free)
     except KeyError as err:  # a free key: name the config it came from
         raise InputError(f"{cfg.path}: fit.free: {err.args[0]}") from None
-    check_truth(capture, free, capture.path or cfg.capture, cfg.material)
+    _check_emitters(capture, fitted, free, cfg.path)
+    problem = Problem(fitted, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)
+    gained = {fitted.views[i].name: problem.gain_channels for i in problem.gain_views}
+    check_truth(capture, free, capture.path or cfg.capture, cfg.material, gained)
     check_uvs(capture.scene, cfg.material)
     from ..render.scene import view_warnings  # Mitsuba's: its variant is set by now
 
@@ -308,7 +361,6 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
     for message in view_warnings(capture.scene, views, where) if trace else ():
         log.warning(message)
         capture.warnings.append(message)  # in the summary and the report too
-    problem = Problem(fitted, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)
     refusal = forward_mode_refusal(problem)
     for k, phase in enumerate(cfg.phases):  # fail before any work, naming the phase
         if refusal and phase.solver in ("gn", "lm"):

@@ -1118,6 +1118,14 @@ CASES: list[Case] = [
         manifest('encoding = "linear"', 'encoding = "srgb"'),
         ("capture.toml", "views[0].image", 'encoding = "linear"'),
     ),
+    (  # was an internal error at the first render ("not in the scene ... nothing to fit")
+        "fit-free-environment-scale-without-one",
+        lambda d: (
+            edit(d / "cap" / "capture.toml", "[0.05, 0.05, 0.06]", "[0, 0, 0]"),
+            fit_cfg('free = ["glaze.roughness"]', 'free = ["environment.scale"]')(d),
+        )[-1],
+        ("fit.toml", "fit.free: environment.scale", "no environment", "drop the key"),
+    ),
     (
         "fit-free-gains",
         fit_cfg('free = ["glaze.roughness"]', 'free = ["gains"]'),
@@ -1631,6 +1639,35 @@ def test_a_truth_key_no_parameter_can_have_is_named(base, tmp_path):
     edit(work / "cap" / "capture.toml", '"glaze.roughness" =', '"glaze.base color" =')
     with pytest.raises(CaptureError, match=r"truth\.glaze\.base color: not a parameter key"):
         prepare(load_fit_config(work / "fit.toml"))
+
+
+def test_a_gains_truth_is_scored_only_where_a_gain_is_fitted(base, caplog):
+    """`gain.<view>` in `[truth]` was warned "not scored" and scored all the same; of another
+    size than the fitted gain it failed after the whole fit (an internal error). Now: the
+    fitted gain's size or an error before any work; without a fitted gain, a warning and
+    left out of the scores."""
+    import logging
+
+    from captures import CaptureError
+    from captures.capture import load_capture
+    from fit.commands.fit import check_truth
+
+    capture = load_capture(base / "cap")
+    capture.truth["gain.view_00"] = [1.0, 2.0]
+    with pytest.raises(CaptureError, match=r"truth\.gain\.view_00: has 2 value\(s\) but the fit"):
+        check_truth(capture, [], "cap", None, {"view_00": 3})
+    capture.truth["gain.view_00"] = [1.0, 1.0, 1.0]
+    check_truth(capture, [], "cap", None, {"view_00": 3})
+    assert capture.truth["gain.view_00"] == [1.0, 1.0, 1.0]  # scored
+    capture.truth["gain.view_09"] = 1.0
+    with caplog.at_level(logging.WARNING):
+        check_truth(capture, [], "cap", None, {"view_00": 3})
+    assert "truth.gain.view_09: not scored (no fitted view view_09)" in caplog.text
+    assert "gain.view_09" not in capture.truth
+    with caplog.at_level(logging.WARNING):
+        check_truth(capture, [], "cap", None, {})
+    assert "truth.gain.view_00: not scored (gains are not fitted" in caplog.text
+    assert "gain.view_00" not in capture.truth
 
 
 def test_force_never_replaces_the_fits_starting_preset(base, tmp_path):
