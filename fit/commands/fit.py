@@ -122,6 +122,15 @@ def check_output(out: Path, cfg: FitConfig, resume: bool, force: bool) -> None:
                 f"--out {out}: is not empty and holds no layerfit run (no summary.json or "
                 "checkpoint.npz): --force replaces only a run's results; choose another folder"
             )
+    # what the run writes, in place of entries of the other kind (found after the whole fit)
+    for name, folder in RUN_ENTRIES.items():
+        entry = out / name
+        if entry.exists() and entry.is_dir() != folder:
+            kind = "a file" if folder else "a folder"
+            raise InputError(
+                f"--out {out}: {name} is {kind}, where the run writes its {name}; move it away "
+                "or choose another folder"
+            )
     try:
         out.mkdir(parents=True, exist_ok=True)
         write_text(out / ".write-test", "")
@@ -130,6 +139,16 @@ def check_output(out: Path, cfg: FitConfig, resume: bool, force: bool) -> None:
         raise InputError(
             f"--out {out}: cannot write there ({err.strerror}); choose another folder"
         ) from None
+
+
+#: The run folder's entries by name, and whether each is a folder.
+RUN_ENTRIES = {
+    "report": True,
+    "report.html": False,
+    "summary.json": False,
+    "preset.toml": False,
+    "checkpoint.npz": False,
+}
 
 
 #: Every layer plugin's choice options and their choices, by option name (`diffuse`, ...).

@@ -1237,6 +1237,33 @@ CASES: list[Case] = [
         ),
         ("--out", "no layerfit run"),
     ),
+    (  # a run's entries of the other kind: an internal error, or a refusal, after the whole fit
+        "fit-force-report-is-a-file",
+        fit_args(
+            "--out",
+            out("run"),
+            "--force",
+            setup=lambda d: (
+                (d / "run").mkdir(),
+                (d / "run" / "summary.json").write_text("{}"),
+                (d / "run" / "report").write_text("x"),
+            ),
+        ),
+        ("--out", "report is a file, where the run writes its report"),
+    ),
+    (
+        "fit-force-preset-is-a-folder",
+        fit_args(
+            "--out",
+            out("run"),
+            "--force",
+            setup=lambda d: (
+                (d / "run" / "preset.toml").mkdir(parents=True),
+                (d / "run" / "summary.json").write_text("{}"),
+            ),
+        ),
+        ("--out", "preset.toml is a folder"),
+    ),
     ("fit-out-holds-inputs", fit_args("--out", lambda d: d, "--force"), ("--out", "inputs")),
     ("fit-resume-nothing", fit_args("--out", out("run"), "--resume"), ("--resume", "checkpoint")),
     ("fit-steps-zero", fit_cfg("steps = 1", "steps = 0"), ("fit.toml", "fit.phases[0].steps")),
