@@ -331,6 +331,7 @@ def build_material(
     if not isinstance(layers, list) or not layers:
         raise b.error(f"[{where}]", f"needs [[{where}.layers]] (bottom to top)")
     built: list[tuple[str, str, dict, dict | None]] = []
+    seen: list[str] = []  # every layer's name, disabled ones too
     for i, entry in enumerate(layers):
         at = f"{where}.layers[{i}]"
         if not isinstance(entry, dict) or not isinstance(entry.get("name"), str):
@@ -343,8 +344,15 @@ def build_material(
                 f"{name!r} must be an identifier, not a reserved word ({', '.join(RESERVED)}) "
                 "nor end in _mask (the stack's own keys)",
             )
-        if name in [n for n, *_ in built]:
+        if name in seen:
             raise b.error(f"{at}.name", f"{name!r} is used twice")
+        seen.append(name)
+        if i == 0 and mask is not None:
+            raise b.error(
+                f"{where}.{name}.mask",
+                "the bottom layer takes no mask (it shows wherever the layers above do not); "
+                "remove the table, or put the layer above another",
+            )
         if not _enabled(b, layer, f"{where}.{name}"):
             continue
         layer_kind = layer.pop("type", None)
@@ -354,6 +362,9 @@ def build_material(
         bsdf = b.plugin(LAYER_PLUGINS[layer_kind], layer, f"{where}.{name}", name, f"{name}.")
         if built and mask is None:
             raise b.error(f"layer {name!r}", f"needs a [{where}.layers.mask] table")
+        if not built and mask is not None:  # the bottom, the layers below it disabled: its
+            # mask is not built, but checked (a missing texture file passed without a word)
+            _Builder(b.file).mask(mask, f"{where}.{name}.mask", name)
         mask_dict = b.mask(mask, f"{where}.{name}.mask", name) if built else None
         built.append((name, layer_kind, bsdf, mask_dict))
     if not built:

@@ -112,6 +112,24 @@ def test_bottom_mask_is_dropped_with_the_bottom_layer():
         (lambda m: layer(m, "glaze").update(roughnes=0.1), "material.glaze.roughnes: unknown key"),
         (lambda m: layer(m, "glaze").update(type="plastic"), "material.glaze.type: got 'plastic'"),
         (lambda m: layer(m, "stain").update(name="lime"), "'lime' is used twice"),
+        (  # refused whichever of the two is disabled (was: only when the second was)
+            lambda m: (
+                layer(m, "lime").update(enabled=False),
+                layer(m, "stain").update(name="lime"),
+            ),
+            "'lime' is used twice",
+        ),
+        (  # the bottom layer's mask was ignored without a word, its missing texture too
+            lambda m: layer(m, "clay").update(mask={"texture": "none.png", "threshold": 0.5}),
+            "material.clay.mask: the bottom layer takes no mask",
+        ),
+        (  # the bottom by the layers below disabled: its mask is not built, but checked
+            lambda m: (
+                layer(m, "clay").update(enabled=False),
+                layer(m, "glaze")["mask"].update(texture="none.png"),
+            ),
+            "'none.png' is not a file",
+        ),
         (lambda m: m.update(bump=1.0), "bump = 1.0 is outside"),
         (lambda m: m.update(bumps=1.0), "[material]: has unknown key(s) bumps"),
     ],
