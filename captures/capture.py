@@ -108,6 +108,11 @@ class Capture:
         that gave it) that leaves a view under `MIN_SIDE` pixels a side."""
         for view in self.views:
             w, h = downscaled_size(view.camera.width, view.camera.height, factor)
+            if min(w, h) < MIN_SIDE and factor == 1:
+                raise CaptureError(
+                    f"{self.path or name}: view {view.name} is {w}x{h}: at least {MIN_SIDE} "
+                    "pixels a side; give larger photos"
+                )
             if min(w, h) < MIN_SIDE:
                 raise CaptureError(
                     f"{name} = {factor} leaves view {view.name} {w}x{h} (from "

@@ -9,9 +9,10 @@ from .errors import CaptureError
 from .importers import diligent_capture, peer_capture
 
 
-def open_capture(path: str | Path, downscale: int = 1) -> Capture:
+def open_capture(path: str | Path, downscale: int = 1, name: str | None = None) -> Capture:
     """A capture manifest (file or folder), a peer `scene.json`, or a DiLiGenT folder, area-
-    averaged by `downscale` (every kind: the cameras follow)."""
+    averaged by `downscale` (every kind: the cameras follow); a factor that leaves a view too
+    small is refused naming `name` (the field that gave it; default `<path>: downscale`)."""
     path = Path(path)
     if downscale < 1:
         raise CaptureError(f"{path}: downscale = {downscale}; give an integer >= 1")
@@ -50,4 +51,5 @@ def open_capture(path: str | Path, downscale: int = 1) -> Capture:
         )
     else:
         capture = load_capture(path)
+    capture.check_factor(downscale, name or f"{path}: downscale")
     return capture.downscaled(downscale)

@@ -538,7 +538,7 @@ def inspect(
     name = capture.stem if capture.name != "scene.json" else capture.parent.name
     sheet = sheet or Path("out") / f"inspect-{name}.png"
     try:
-        cap = open_capture(capture, downscale)
+        cap = open_capture(capture, downscale, "--downscale")
         small = min(cap.views, key=lambda v: min(v.camera.width, v.camera.height))
         if min(small.camera.width, small.camera.height) < MIN_SIDE:
             raise InputError(

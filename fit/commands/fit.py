@@ -354,7 +354,7 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
     any render. With `trace`, views without the object or seeing its faces from behind are
     warned (`view_warnings`; a multi-start's workers leave it to the command, which warned
     once)."""
-    capture = open_capture(cfg.capture, cfg.downscale)
+    capture = open_capture(cfg.capture, cfg.downscale, f"{cfg.path}: fit.downscale")
     try:
         held = held_out(len(capture.views), cfg.holdout if holdout is None else holdout)
     except InputError as err:

@@ -327,6 +327,13 @@ def test_manifest_downscale_adjusts_cameras(tmp_path):
     path = make_capture(tmp_path, views=views, capture=capture | {"downscale": 4}, size=(16, 12))
     with pytest.raises(CaptureError, match=r"capture.toml: capture.downscale = 4 leaves .* 4x3"):
         load_capture(path)
+    # photos under 4 pixels a side: no factor to make smaller (it said "give a smaller factor")
+    views = [{"image": "v0.exr", "camera": dict(CAMERA, width=3, height=2)}]
+    path = make_capture(tmp_path, views=views, capture={"encoding": "linear"}, size=(3, 2))
+    with pytest.raises(
+        CaptureError, match=r"capture.toml: view v0 is 3x2: at least 4 pixels a side; give lar"
+    ):
+        load_capture(path)
 
 
 def bad(tmp_path, **kw):

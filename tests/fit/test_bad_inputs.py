@@ -1101,7 +1101,7 @@ CASES: list[Case] = [
     (
         "inspect-downscale-huge",
         inspect_args(out("cap"), "--downscale", "8", "--sheet", out("s.png")),
-        ("--downscale 8", "4 pixels", "smaller factor"),
+        ("--downscale = 8", "4 pixels", "smaller factor"),
     ),
     (
         "fit-variant-unknown",  # refused before the run folder (or its parent) is made
@@ -1267,6 +1267,11 @@ CASES: list[Case] = [
     ("fit-out-holds-inputs", fit_args("--out", lambda d: d, "--force"), ("--out", "inputs")),
     ("fit-resume-nothing", fit_args("--out", out("run"), "--resume"), ("--resume", "checkpoint")),
     ("fit-steps-zero", fit_cfg("steps = 1", "steps = 0"), ("fit.toml", "fit.phases[0].steps")),
+    (  # blamed the phase's factor, 1 (its own check after the capture's)
+        "fit-downscale-huge",
+        fit_cfg("[fit]\n", "[fit]\ndownscale = 100\n"),
+        ("fit.toml: fit.downscale = 100 leaves view", "smaller factor"),
+    ),
     (
         "fit-downscale-zero",
         fit_cfg("[fit]\n", "[fit]\ndownscale = 0\n"),
