@@ -72,6 +72,10 @@ def _why_not(material: Material, text: str) -> str:
             '"exposure" (one grey gain per view) instead'
         )
     key = parse_key(text)
+    if text == "bump":
+        if len(material.layers) < 2:
+            return "the bump comes from the masks of a stack of two or more layers; drop the key"
+        return "bump is 0 in [material], so it is not built; give it a start > 0 (e.g. 0.0002)"
     owners = {name for name, _ in material.layers} | ({""} if "bump" in material.params else set())
     if key.owner not in owners:
         layers = ", ".join(name for name, _ in material.layers)

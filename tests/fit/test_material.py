@@ -77,6 +77,13 @@ def test_disabling_a_layer_keeps_the_others_keys():
     assert [f.traverse for f in resolve(material, ["clay.sigma"])] == ["sigma"]
     with pytest.raises(KeyError, match="no layer 'glaze' is built"):
         resolve(material, ["glaze.roughness"])
+    with pytest.raises(KeyError, match="the bump comes from the masks of a stack of two or more"):
+        resolve(material, ["bump"])
+    # the stack with its bump at 0 (not built): it said "no layer '' is built"
+    table = tomllib.loads(CUP.read_text())["material"]
+    flat = build_material({**table, "bump": 0.0}, CUP)
+    with pytest.raises(KeyError, match=r"bump is 0 in \[material\], so it is not built; give"):
+        resolve(flat, ["bump"])
 
 
 def test_preset_round_trips_exactly_with_textures(tmp_path):
