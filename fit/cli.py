@@ -92,6 +92,27 @@ def _interruptible(what: Callable[[], str]) -> Iterator[None]:
         raise _fail(f"interrupted: {what()}", 130) from None
 
 
+def _check_capture_cameras(scene, path: Path) -> None:
+    """Refuse cameras whose views a capture cannot hold (what its loader refuses: synth wrote
+    them, and inspect and fit then refused the capture): under `MIN_SIDE` pixels a side, or not
+    seeing the object."""
+    from captures.capture import MIN_SIDE
+    from captures.scene import bounding_sphere, sees
+
+    center, radius = bounding_sphere(scene.geometry)
+    for i, camera in enumerate(scene.cameras):
+        if min(camera.width, camera.height) < MIN_SIDE:
+            raise InputError(
+                f"{path}: scene.cameras[{i}] is {camera.width}x{camera.height}: a capture's views "
+                f"need at least {MIN_SIDE} pixels a side; give a larger width and height"
+            )
+        if not sees(camera, center, radius):
+            raise InputError(
+                f"{path}: scene.cameras[{i}] does not see the object (centre {center.round(3)}, "
+                f"radius {radius:.3g}); check its origin, target and field of view"
+            )
+
+
 def _scene_and_material(config: Path, scene: Path | None):
     """(scene, material, spp) of a render config or a preset, the scene replaced by `scene`'s."""
     from captures import CaptureError, parse_scene
@@ -457,6 +478,7 @@ def synth(
 
     try:
         the_scene, material, config_spp = _scene_and_material(config, scene)
+        _check_capture_cameras(the_scene, scene or config)
         if fmt not in ("exr", "png", "jpg"):
             raise InputError(f"--format {fmt!r}: unknown format; choose one of exr, png, jpg")
         inputs = _inputs(config, scene, the_scene, material)

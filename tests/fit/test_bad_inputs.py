@@ -547,6 +547,26 @@ CASES: list[Case] = [
     ("render-unknown-option", render_args("--sp", "3"), ("--sp",)),
     # --- synth options and outputs
     ("synth-exists", synth_args("--out", out("cap")), ("--out", "cap", "--force")),
+    (  # synth wrote them, and inspect and fit then refused the capture
+        "synth-camera-looks-away",
+        synth_args(
+            "--out",
+            out("away"),
+            setup=lambda d: edit(
+                d / "render.toml", "target = [0.0, 0.0, 0.0]", "target = [0.0, -9.0, 1.2]"
+            ),
+        ),
+        ("render.toml", "scene.cameras[0] does not see the object"),
+    ),
+    (
+        "synth-camera-too-small",
+        synth_args(
+            "--out",
+            out("tiny"),
+            setup=lambda d: edit(d / "render.toml", "width = 16", "width = 3"),
+        ),
+        ("render.toml", "scene.cameras[0] is 3x12", "at least 4 pixels"),
+    ),
     (
         "synth-force-not-capture",
         synth_args(
