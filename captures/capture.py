@@ -146,6 +146,36 @@ class Capture:
         return replace(self, scene=scene, views=views)
 
 
+def pixel_warnings(image: np.ndarray, name) -> list[str]:
+    """One line each for an image's pixels that are not finite and those below 0 (what a fit
+    does with them)."""
+    out = []
+    finite = np.isfinite(image)
+    if not np.all(finite):
+        bad = int(np.sum(~np.all(finite, axis=-1)))
+        out.append(f"{name}: {bad} NaN/Inf pixels get weight 0")
+    negative = np.any(finite & (image < 0), axis=-1)
+    if negative.any():  # dropped: negative, every channel finite and none above 0
+        dropped = int(np.sum(negative & np.all(finite, -1) & np.all(image <= 0, -1)))
+        out.append(
+            f"{name}: {int(negative.sum())} pixels have negative values (the lowest "
+            f"{float(image[finite].min()):.3g}): {dropped} of them with no channel above 0 "
+            "get weight 0 as clipped black, the others are fitted as they are; a linear "
+            "image with its black level subtracted keeps noise below 0, a denoiser or "
+            "resampling rings"
+        )
+    return out
+
+
+def check_valid(weight: np.ndarray, where: str) -> None:
+    """Refuse a view with no valid pixel (`where`: the file and field that name it)."""
+    if weight.mean() == 0:
+        raise CaptureError(
+            f"{where} has no valid pixel (every one is saturated, black, not finite or outside "
+            "the mask); check the image, its exposure and its mask"
+        )
+
+
 def _in_folder(path: Path, info: ValidationInfo) -> Path:
     folder = config_folder(info).resolve()
     if not path.is_relative_to(folder):
@@ -260,20 +290,7 @@ def load_capture(path: str | Path) -> Capture:
         except CaptureError as err:  # name the manifest and the view
             raise CaptureError(f"{path}: views[{i}].image: {err}") from None
         h, w = image.shape[:2]
-        finite = np.isfinite(image)
-        if not np.all(finite):
-            bad = int(np.sum(~np.all(finite, axis=-1)))
-            warnings.append(f"{spec.image}: {bad} NaN/Inf pixels get weight 0")
-        negative = np.any(finite & (image < 0), axis=-1)
-        if negative.any():  # dropped: negative, every channel finite and none above 0
-            dropped = int(np.sum(negative & np.all(finite, -1) & np.all(image <= 0, -1)))
-            warnings.append(
-                f"{spec.image}: {int(negative.sum())} pixels have negative values (the lowest "
-                f"{float(image[finite].min()):.3g}): {dropped} of them with no channel above 0 "
-                "get weight 0 as clipped black, the others are fitted as they are; a linear "
-                "image with its black level subtracted keeps noise below 0, a denoiser or "
-                "resampling rings"
-            )
+        warnings += pixel_warnings(image, spec.image)
         mask = None
         if spec.mask is not None:
             try:
@@ -302,12 +319,7 @@ def load_capture(path: str | Path) -> Capture:
             )
         cameras.append(camera)
         views.append(View(spec.image.stem, image, weight, None, gain, mask=mask))  # camera below
-        if weight.mean() == 0:
-            raise CaptureError(
-                f"{path}: views[{i}].image: {spec.image.name} has no valid pixel (every one is "
-                "saturated, black, not finite or outside the mask); check the image, its "
-                "exposure and its mask"
-            )
+        check_valid(weight, f"{path}: views[{i}].image: {spec.image.name}")
 
     try:
         scene = parse_scene({**manifest.scene, "cameras": cameras}, path)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .capture import Capture, View
+from .capture import Capture, View, check_valid, pixel_warnings
 from .errors import CaptureError
 from .geometry import block_normals, covered_blocks, covered_pixels, normal_map_mesh
 from .images import read_image, read_linear, read_mask, srgb_encode
@@ -38,8 +38,17 @@ def peer_capture(scene_json: str | Path) -> Capture:
     above 0 is Cycles' EON roughness: the glaze's sigma with `diffuse = "eon"`
     (`Capture.truth_options`), not the qualitative Oren-Nayar's."""
     scene = load_peer_scene(scene_json)
-    views, warnings = [], []
-    for camera, path in zip(scene.cameras, scene.meta["images"], strict=True):
+    views, warnings = [], list(scene.meta.get("warnings", ()))
+    first: dict[str, int] = {}
+    for i, path in enumerate(scene.meta["images"]):
+        j = first.setdefault(Path(path).stem, i)
+        if j != i:  # the views' names (their gains', in the summary) would collide
+            raise CaptureError(
+                f"{scene_json}: views[{i}].image: {Path(path).name} has the name of "
+                f"views[{j}].image ({scene.meta['images'][j]}); a view is named by its file's "
+                "name: rename one"
+            )
+    for i, (camera, path) in enumerate(zip(scene.cameras, scene.meta["images"], strict=True)):
         levels = _integer_levels(path)
         encoding = "linear" if levels is None else "srgb"
         image, saturated, warned = read_linear(path, encoding)
@@ -62,7 +71,9 @@ def peer_capture(scene_json: str | Path) -> Capture:
         else:
             codes = np.abs(srgb_encode(image) - srgb_encode(environment)) * levels
             mask = codes.max(-1) > 1.5
+        warnings += pixel_warnings(image, path)
         image, weight = validity(image, saturated)
+        check_valid(weight, f"{scene_json}: views[{i}].image: {Path(path).name}")
         views.append(View(Path(path).stem, image, weight, camera, mask=mask, mask_coverage=0.0))
     material = scene.meta["material"]
     if not isinstance(material, dict):

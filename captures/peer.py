@@ -11,6 +11,24 @@ from .errors import CaptureError
 from .scene import Scene
 from .schema import parse_scene
 
+#: The fields a peer `scene.json` has (`../shared/data/peer-cycles`), the file's, a view's and a
+#: light's: others are warned as ignored.
+PEER_FIELDS = (
+    "generator",
+    "axes",
+    "mesh",
+    "shape",
+    "views",
+    "lights",
+    "environment_radiance_rgb",
+    "material",
+    "notes",
+)
+VIEW_FIELDS = ("image", "origin", "target", "up", "fov_x_deg", "width", "height")
+VIEW_FIELDS += ("blender_matrix_world",)
+LIGHT_FIELDS = ("type", "center", "emit_direction", "u_axis", "v_axis", "size", "radiance_rgb")
+LIGHT_FIELDS += ("one_sided",)
+
 
 def load_peer_scene(path: str | Path) -> Scene:
     """Read a peer `scene.json`: cameras, rectangle lights, constant environment, mesh.
@@ -35,6 +53,17 @@ def load_peer_scene(path: str | Path) -> Scene:
             raise CaptureError(f"{path}: {where} has no field {key!r}")
         return table[key]
 
+    warnings = []
+
+    def unknown(table, known: tuple, where: str) -> None:  # another exporter's extra fields
+        extra = sorted(k for k in table if k not in known) if isinstance(table, dict) else []
+        if extra:
+            warnings.append(
+                f"{path}: {where} has field(s) {', '.join(map(repr, extra))} this version does "
+                f"not read: ignored (it reads {', '.join(known)})"
+            )
+
+    unknown(doc, PEER_FIELDS, "the file")
     views = field(doc, "views", "the file")
     if not isinstance(views, list) or not views:
         raise CaptureError(f"{path}: views must be a list of one or more views")
@@ -45,6 +74,8 @@ def load_peer_scene(path: str | Path) -> Scene:
             if isinstance(camera[k], float) and camera[k].is_integer():
                 camera[k] = int(camera[k])
     images = [path.parent / str(field(v, "image", f"views[{i}]")) for i, v in enumerate(views)]
+    for i, view in enumerate(views):
+        unknown(view, VIEW_FIELDS, f"views[{i}]")
     lights = doc.get("lights", [])
     if not isinstance(lights, list):
         raise CaptureError(f"{path}: lights must be a list")
@@ -54,12 +85,24 @@ def load_peer_scene(path: str | Path) -> Scene:
         kind = field(light, "type", f"lights[{i}]")
         if kind != "rectangle":
             raise CaptureError(f"{path}: lights[{i}].type = {kind!r}; only 'rectangle' is known")
+        unknown(light, LIGHT_FIELDS, f"lights[{i}]")
+        if light.get("one_sided", True) is not True:
+            raise CaptureError(
+                f"{path}: lights[{i}].one_sided = {light['one_sided']!r}: layerfit's rectangle "
+                "lights emit from one side (emit_direction), as Cycles' area lights; give two "
+                "lights back to back for a two-sided one"
+            )
         table = {k: field(light, k, f"lights[{i}]") for k in keys}
         radiance = field(light, "radiance_rgb", f"lights[{i}]")
         tables.append({"type": "rectangle", **table, "radiance": radiance})
     name = str(field(doc, "mesh", "the file"))
     if not (path.parent / name).is_file():
         raise CaptureError(f"{path}: mesh {name!r} does not exist next to it")
+    if "environment_radiance_rgb" not in doc:
+        warnings.append(
+            f"{path}: no environment_radiance_rgb: the environment is taken as black (a view's "
+            "background that is not black then fits as the object's light)"
+        )
     environment = doc.get("environment_radiance_rgb", [0.0, 0.0, 0.0])
     if not isinstance(environment, list) or len(environment) != 3:
         raise CaptureError(
@@ -75,7 +118,8 @@ def load_peer_scene(path: str | Path) -> Scene:
         scene = parse_scene(table, path)
     except CaptureError as err:
         raise CaptureError(_peer_names(str(err))) from None
-    return replace(scene, meta={"material": doc.get("material", {}), "images": images})
+    meta = {"material": doc.get("material", {}), "images": images, "warnings": warnings}
+    return replace(scene, meta=meta)
 
 
 def _peer_names(message: str) -> str:

@@ -709,3 +709,57 @@ def test_a_downscaled_mask_keeps_its_coverage_meaning(coverage, expected):
     capture = Capture(Scene(Sphere(), (camera,)), [view])
     small = capture.downscaled(4).views[0].mask
     assert small.shape == (2, 2) and int(small.sum()) == expected and small[0, 0] == bool(expected)
+
+
+def test_a_peer_target_is_checked_as_a_manifest_is(tmp_path):
+    """What a manifest refuses or warns of, a peer target does too: two views named alike
+    (their gains collided: an internal error after the whole fit), a view with no valid pixel
+    (fitted as a perfect match, relative RMSE 0), NaN pixels; a light that is not one-sided is
+    refused; fields this version does not read, and no environment, are warned."""
+    import json
+
+    path = _peer_folder(tmp_path / "peer", "a/view.exr", {"base_color": [0.5, 0.4, 0.3]})
+    doc = json.loads(path.read_text())
+    doc["views"].append({**doc["views"][0], "image": "b/view.exr"})
+    for name in ("a", "b"):
+        (tmp_path / "peer" / name).mkdir()
+        write_image(tmp_path / "peer" / name / "view.exr", np.full((6, 8, 3), 0.2, np.float32))
+    path.write_text(json.dumps(doc))
+    with pytest.raises(CaptureError, match=r"views\[1\]\.image: view.exr has the name of views\["):
+        peer_capture(path)
+
+    doc["views"] = doc["views"][:1]
+    doc["views"][0]["image"] = "black.exr"
+    path.write_text(json.dumps(doc))
+    write_image(tmp_path / "peer" / "black.exr", np.zeros((6, 8, 3), np.float32))
+    with pytest.raises(CaptureError, match=r"views\[0\]\.image: black.exr has no valid pixel"):
+        peer_capture(path)
+
+    nan = np.full((6, 8, 3), 0.2, np.float32)
+    nan[0, 0] = np.nan
+    write_image(tmp_path / "peer" / "black.exr", nan)
+    doc["views"][0]["exposure"] = 1.0  # another exporter's field
+    doc["lights"] = [
+        {
+            "type": "rectangle",
+            "center": [0, 0, 3],
+            "emit_direction": [0, 0, -1],
+            "u_axis": [1, 0, 0],
+            "v_axis": [0, -1, 0],
+            "size": [1, 1],
+            "radiance_rgb": [5, 5, 5],
+            "one_sided": False,
+        }
+    ]
+    del doc["environment_radiance_rgb"]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(CaptureError, match=r"lights\[0\]\.one_sided = False: layerfit's rect"):
+        peer_capture(path)
+    doc["lights"][0]["one_sided"] = True
+    path.write_text(json.dumps(doc))
+    warnings = peer_capture(path).warnings
+    assert any("black.exr: 1 NaN/Inf pixels get weight 0" in w for w in warnings)
+    assert any("views[0] has field(s) 'exposure' this version does not read" in w for w in warnings)
+    assert any(
+        "no environment_radiance_rgb: the environment is taken as black" in w for w in warnings
+    )
