@@ -228,7 +228,18 @@ def check_truth(
         try:  # a truth no fit can reach would be scored as the fit's error
             f.spec.check(value, f"{path}: truth.{f.key}")
         except ValueError as err:
-            raise CaptureError(str(err)) from None
+            if Path(str(path)).name != "scene.json":
+                raise CaptureError(str(err)) from None
+            # another renderer's target (a Cycles glaze of roughness 0.08: alpha 0.0064) is
+            # fitted all the same, toward the nearest value the material has; not scored
+            message = (
+                f"{path}: the peer's truth.{f.key} = {value} is outside the parameter's bounds "
+                f"[{f.spec.lower:g}, {f.spec.upper:g}] ({f.spec.doc}): the fit cannot reach it "
+                "and ends near the bound; not scored"
+            )
+            log.warning(message)
+            capture.warnings.append(message)  # in the summary and the report too
+            del capture.truth[f.key]
 
 
 def _check_emitters(capture: Capture, fitted: Capture, free: list[Free], path) -> None:
