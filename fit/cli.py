@@ -557,8 +557,10 @@ def inspect(
     from captures.capture import MIN_SIDE
     from captures.files import check_output
 
-    name = capture.stem if capture.name != "scene.json" else capture.parent.name
-    sheet = sheet or Path("out") / f"inspect-{name}.png"
+    named = capture.resolve()  # `.` is named by its folder (the sheet was "inspect-.png")
+    if named.name in ("scene.json", "capture.toml"):
+        named = named.parent
+    given, sheet = sheet is not None, sheet or Path("out") / f"inspect-{named.stem}.png"
     try:
         cap = open_capture(capture, downscale, "--downscale")
         small = min(cap.views, key=lambda v: min(v.camera.width, v.camera.height))
@@ -571,8 +573,9 @@ def inspect(
         folder = Path(cap.path or capture)
         folder = folder if folder.is_dir() else folder.parent
         if sheet.resolve().is_relative_to(folder.resolve()):
+            what = f"--sheet {sheet}" if given else f"the default sheet {sheet} (give --sheet)"
             raise InputError(
-                f"--sheet {sheet}: is inside the capture folder {folder}; write the sheet "
+                f"{what}: is inside the capture folder {folder}; write the sheet "
                 "elsewhere (a capture's files are never overwritten)"
             )
         check_output(sheet, "--sheet", force=force, inputs=[capture], suffixes=(".png",))

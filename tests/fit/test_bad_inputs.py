@@ -1871,3 +1871,19 @@ def test_synth_warns_of_clipped_photographs(base, tmp_path, caplog):
             degradation=Degradation(base_ev=-3.0),
         )
     assert not [r for r in caplog.records if "clip" in r.getMessage()]
+
+
+def test_inspect_in_a_capture_folder_names_its_default_sheet(base, tmp_path, capsys, monkeypatch):
+    """`layerfit inspect .` inside a capture: the default sheet was `out/inspect-.png`, and its
+    refusal blamed a `--sheet` never given; named after the folder, and said to be the default.
+    From elsewhere the folder's own name is used."""
+    work = tmp_path / "w"
+    shutil.copytree(base, work)
+    monkeypatch.chdir(work / "cap")
+    code, _, stderr = run(["inspect", ".", "--no-silhouette"], capsys)
+    assert code == 2
+    assert "the default sheet out/inspect-cap.png (give --sheet): is inside the capture" in stderr
+    monkeypatch.chdir(work)
+    code, _, stderr = run(["inspect", "cap/capture.toml", "--no-silhouette"], capsys)
+    assert code == 0, stderr
+    assert (work / "out" / "inspect-cap.png").is_file()
