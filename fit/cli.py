@@ -208,7 +208,9 @@ def render(
         base = out.name[: -len(out.suffix)] if out.suffix else out.name  # only the last suffix
         for view in range(views):
             name = base if views == 1 else f"{base}_{view:02d}"
-            files = dict.fromkeys(out.with_name(name + s) for s in (".exr", out.suffix))
+            # the linear EXR, and the image asked for (b.EXR is that EXR: written once)
+            suffixes = (out.suffix,) if out.suffix.lower() == ".exr" else (".exr", out.suffix)
+            files = dict.fromkeys(out.with_name(name + s) for s in suffixes)
             paths.append(list(files))
         inputs = _inputs(config, scene, the_scene, material)
         for path in (p for files in paths for p in files):

@@ -48,6 +48,11 @@ def test_render_writes_exr_and_png(tmp_path):
     # the blue pigment shows: more blue than red on the object
     centre = exr[18:30, 26:38]
     assert centre[..., 2].mean() > 1.5 * centre[..., 0].mean()
+    # an upper-case .EXR is that EXR, written once (it wrote b.exr and b.EXR, the same image)
+    (tmp_path / "upper").mkdir()
+    out = run_cli("render", small_config(tmp_path), "--out", tmp_path / "upper" / "b.EXR")
+    assert out.returncode == 0, out.stderr
+    assert [p.name for p in (tmp_path / "upper").iterdir()] == ["b.EXR"]
 
 
 @pytest.mark.parametrize(
