@@ -604,8 +604,13 @@ def inspect(
                 f"{row['iou']:.3f}" if "iou" in row else "-",
             )
         console.print(table)
-        out = contact_sheet(cap, coverage, sheet)
-    console.print(f"wrote {out}", markup=False, highlight=False)
+        out = contact_sheet(cap, coverage, sheet, SHEET_VIEWS)
+    shown = "" if len(cap.views) <= SHEET_VIEWS else f" (the first {SHEET_VIEWS} views)"
+    console.print(f"wrote {out}{shown}", markup=False, highlight=False)
+
+
+#: The views a contact sheet shows (the table lists all).
+SHEET_VIEWS = 8
 
 
 @app.command()

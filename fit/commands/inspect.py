@@ -75,5 +75,10 @@ def contact_sheet(
             axes[i, 2].set_title(title, fontsize=8)
         for ax in axes[i]:
             ax.axis("off")
+    if len(capture.views) > len(views):  # said, not silently cut
+        fig.suptitle(
+            f"the first {len(views)} of {len(capture.views)} views (the table lists all)",
+            fontsize=9,
+        )
     fig.tight_layout()
     return save_figure(fig, out)

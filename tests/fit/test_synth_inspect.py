@@ -121,6 +121,12 @@ def test_inspect_command(tmp_path, shared_data):
     assert "view_00" in out.stderr and "0.99" in out.stderr
     assert "mesh mesh.obj" in out.stderr  # the object, in the title
     assert (tmp_path / "sheet.png").stat().st_size > 10_000
+    # a DiLiGenT folder's 16 views: the sheet shows 8, and says so (it stopped without a word)
+    out = run_cli(
+        "inspect", shared_data / "diligent-ball", "--downscale", "8", "--sheet", tmp_path / "d.png"
+    )
+    assert out.returncode == 0, out.stderr
+    assert "d.png (the first 8 views)" in out.stderr.replace("\n", "")
 
 
 def test_contact_sheet_without_silhouette(tmp_path):
