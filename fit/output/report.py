@@ -126,13 +126,17 @@ def _loss_png(summary: dict, path: Path) -> Path | None:
 
 
 def _correlation_png(corr: np.ndarray, labels: list[str], path: Path) -> Path:
-    """Heat map in -1..1 (diverging), labels on both axes, values written when <= 20 rows."""
+    """Heat map in -1..1 (diverging), labels on both axes, values written when <= 20 rows; an
+    undetermined parameter's row and column (NaN, null in the summary) grey."""
     plt = pyplot()
     n = corr.shape[0]
     size = min(3.0 + 0.28 * n, 14.0)
     font = 8 if n <= 20 else max(3.0, 160 / n)
     fig, ax = plt.subplots(figsize=(size + 1.5, size), layout="constrained")
-    shown = ax.imshow(corr, cmap="RdBu_r", vmin=-1, vmax=1, interpolation="nearest")
+    cmap = plt.get_cmap("RdBu_r").with_extremes(bad="0.75")  # undetermined: unknown, not 0
+    shown = ax.imshow(corr, cmap=cmap, vmin=-1, vmax=1, interpolation="nearest")
+    if not np.all(np.isfinite(corr)):
+        ax.set_title("grey: undetermined (no correlation known)", fontsize=8)
     ax.set_xticks(range(n), labels, rotation=90, fontsize=font)
     ax.set_yticks(range(n), labels, fontsize=font)
     if n <= 20:

@@ -249,7 +249,8 @@ def uncertainty(
     std_flat = np.sqrt(np.clip(np.diag(cov), 0, None))
     with np.errstate(invalid="ignore"):  # inf / inf where undetermined: no correlation known
         corr = cov / np.maximum(np.outer(std_flat, std_flat), 1e-30)
-    corr = np.where(np.isfinite(corr), corr, 0.0)
+    corr = np.where(np.isfinite(corr), corr, np.nan)
+    corr[unknown, :] = corr[:, unknown] = np.nan  # unknown, not 0 ("uncorrelated")
     np.fill_diagonal(corr, 1.0)
     values = problem.values(np.asarray(u))
     std, flagged, i = {}, [], 0

@@ -47,7 +47,11 @@ def fake_fit(rng: np.random.Generator) -> tuple[dict, list[ViewPanel], dict]:
             "base.albedo": [0.5] * 48,
             "glaze.ior": 1.5,
         },
-        "correlation": np.corrcoef(rng.random((4, 10))).tolist(),
+        # an undetermined parameter's correlations are null (unknown): drawn grey
+        "correlation": [
+            [None if (i == 3) != (j == 3) else v for j, v in enumerate(row)]
+            for i, row in enumerate(np.corrcoef(rng.random((4, 10))).tolist())
+        ],
         "correlation_labels": LABELS,
         "history": (np.geomspace(1.0, 1e-3, 60) * (1 + 0.1 * rng.random(60))).tolist(),
         "phase_ends": [40, 59, 60],

@@ -1069,7 +1069,11 @@ def test_a_value_pinned_at_its_bound_is_undetermined_not_certain(problem):
     assert np.all(np.isfinite(np.asarray(slopes)))
     values = problem.values(u)
     assert values["glaze.roughness"] == 1.0 and values["glaze.ior"] == pytest.approx(1.01)
-    std, _, flagged = uncertainty(problem, u, spp=32, seed=1)
+    std, corr, flagged = uncertainty(problem, u, spp=32, seed=1)
     assert std["glaze.roughness"] == np.inf and std["glaze.ior"] == np.inf
     assert {"glaze.roughness", "glaze.ior"} <= set(flagged)
     assert all(0 < s < 0.05 for s in std["glaze.pigment"]), std
+    # their correlations are unknown (NaN: null in the summary, grey in the report), not 0
+    # ("uncorrelated", as the report's heat map drew them); the pigment's among themselves known
+    off = ~np.eye(5, dtype=bool)
+    assert np.all(np.isnan(corr[3:5][off[3:5]])) and np.all(np.isfinite(corr[:3, :3]))
