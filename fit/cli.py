@@ -688,7 +688,7 @@ def fit(
     with _progress() as bar:
         tasks = [
             bar.add_task(
-                f"fit {k + 1}/{len(cfg.phases)}: {p.describe()}",
+                f"fit {k + 1}/{len(cfg.phases)}: {p.describe(cfg.downscale)}",
                 total=p.steps,
             )
             for k, p in enumerate(cfg.phases if cfg.starts == 1 else ())

@@ -685,6 +685,7 @@ def _summary(cfg, capture, held, start, result, wall, panels, interrupted) -> di
         ],
         "outcomes": [r.as_dict() for r in result.reports],
         "seed": cfg.seed,
+        "downscale": cfg.downscale,  # the photos' area-averaging before any phase's own
         "config_identity": config_identity(cfg),
         # the material's structural choices (lobes, coupling, Fresnel, noise scales)
         "options": dict(cfg.material.options),

@@ -113,7 +113,10 @@ def _loss_png(summary: dict, path: Path) -> Path | None:
         end = min(stop, history.size)
         p = phases[k] if k < len(phases) and isinstance(phases[k], dict) else {}
         label = f"{k + 1}: {p.get('solver', '?')}, {p.get('spp', '?')} spp, "
-        label += f"1/{p.get('downscale', '?')} res"
+        factor = p.get("downscale")  # times the fit's own (fit.downscale)
+        if isinstance(factor, int) and isinstance(summary.get("downscale"), int):
+            factor *= summary["downscale"]
+        label += f"1/{factor if factor is not None else '?'} res"
         ax.semilogy(
             np.arange(begin, end), history[begin:end], "o" if end - begin == 1 else "-", label=label
         )

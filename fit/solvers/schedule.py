@@ -83,9 +83,11 @@ class Phase(BaseModel):
             return getattr(options, name)
         return super().__getattr__(name)
 
-    def describe(self) -> str:
+    def describe(self, base: int = 1) -> str:
+        """One line: solver, spp, resolution (of the full photos, `base` the fit's own
+        area-averaging: fit.downscale), held keys."""
         held = getattr(self.options, "hold", ())
-        return f"{self.solver}, {self.spp} spp, 1/{self.downscale} res" + (
+        return f"{self.solver}, {self.spp} spp, 1/{base * self.downscale} res" + (
             f", holding {', '.join(held)}" if held else ""
         )
 

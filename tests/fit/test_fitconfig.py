@@ -51,6 +51,10 @@ def test_phases_load_and_default(tmp_path, shared_data):
         ("lm", 5, 128, 1),
     ]
     assert phases[0].lr == 0.1 and phases[1].jacobian_spp == 16
+    # its resolution against the full photos: with fit.downscale = 4 a half-resolution phase
+    # is an eighth (the progress bar and the report's legend said "1/2 res")
+    assert phases[0].describe() == "adam, 8 spp, 1/2 res"
+    assert phases[0].describe(4) == "adam, 8 spp, 1/8 res"
     assert load_fit_config(ROOT / "configs" / "peer-sphere.toml").phases == list(DEFAULT_SCHEDULE)
 
 
