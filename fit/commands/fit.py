@@ -388,7 +388,8 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
 
     views = [(v.name, v.camera) for v in capture.views]
     where = capture.path or cfg.capture
-    for message in view_warnings(capture.scene, views, where) if trace else ():
+    masks = [None if v.mask is None else (v.mask, v.mask_coverage) for v in capture.views]
+    for message in view_warnings(capture.scene, views, where, masks) if trace else ():
         log.warning(message)
         capture.warnings.append(message)  # in the summary and the report too
     refusal = forward_mode_refusal(problem)

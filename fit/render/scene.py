@@ -210,7 +210,16 @@ def back_faces(scene: Scene, cameras: list[Camera]) -> list[tuple[int, int]]:
     `BACK_FACE_COSINE` says), pixel centres traced through one bare scene of the object (lights
     left out) with every camera a sensor. The materials are one-sided: such pixels render black
     (an open mesh seen from inside, a mesh whose normals point inward). Pixels on a grid of at
-    most `BACK_FACE_SIDE` a side."""
+    most `BACK_FACE_SIDE` a side (`trace_silhouettes`)."""
+    return [
+        (int(hit.sum()), int(behind.sum())) for hit, behind in trace_silhouettes(scene, cameras)
+    ]
+
+
+def trace_silhouettes(scene: Scene, cameras: list[Camera]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per camera: (the pixel centres that meet the object, those that meet it from behind), as
+    (ny, nx) booleans on a grid of at most `BACK_FACE_SIDE` a side spread over the image (grid
+    cell (i, j) is the pixel at ((j + 0.5) / nx, (i + 0.5) / ny) of the image's extent)."""
     bounds = bounding_sphere(scene.geometry)
     sensors = {f"sensor_{k:04d}": sensor_dict(c, 1, bounds) for k, c in enumerate(cameras)}
     bare = geometry_dict(scene, mi.load_dict({"type": "diffuse"}))
@@ -225,18 +234,40 @@ def back_faces(scene: Scene, cameras: list[Camera]) -> list[tuple[int, int]]:
         shading = np.asarray(si.wi.z)  # the cosine to the shading normal
         back = np.asarray(si.n.x * ray.d.x + si.n.y * ray.d.y + si.n.z * ray.d.z) > 0
         behind = hit & (((shading < 0) & back) | (shading < BACK_FACE_COSINE))
-        out.append((int(hit.sum()), int(behind.sum())))
+        out.append((hit.reshape(ny, nx), behind.reshape(ny, nx)))
     return out
 
 
-def view_warnings(scene: Scene, views: list[tuple[str, Camera]], where: str) -> list[str]:
+def view_warnings(
+    scene: Scene,
+    views: list[tuple[str, Camera]],
+    where: str,
+    masks: list[tuple[np.ndarray, float] | None] | None = None,
+) -> list[str]:
     """What the views' pixel centres traced through the object say, as lines: views that show
     no object at any traced pixel centre (an object under a pixel: cameras and mesh in other
-    units, or out of view), then `back_face_warning`'s (views sharing a camera, as photometric
+    units, or out of view); views whose object mask (`masks`: per view, (mask, its coverage
+    threshold) or None) the traced silhouette overlaps by less than `MIN_SILHOUETTE_IOU` (a
+    mesh in other axes or units, cameras misplaced: the fit would explain the difference with
+    the material); then `back_face_warning`'s (views sharing a camera, as photometric
     stereo's, traced once)."""
     cameras = list(dict.fromkeys(camera for _, camera in views))
-    traced = dict(zip(cameras, back_faces(scene, cameras), strict=True))
+    grids = dict(zip(cameras, trace_silhouettes(scene, cameras), strict=True))
+    traced = {c: (int(hit.sum()), int(behind.sum())) for c, (hit, behind) in grids.items()}
     out = []
+    overlaps = {}
+    for (name, camera), given in zip(views, masks or [None] * len(views), strict=True):
+        if given is not None and traced[camera][0]:
+            overlaps[name] = _grid_iou(grids[camera][0], *given)
+    low = {name: v for name, v in overlaps.items() if v < MIN_SILHOUETTE_IOU}
+    if low:
+        shown = ", ".join(f"{name} {v:.2f}" for name, v in low.items())
+        out.append(
+            f"{where}: the object's silhouette overlaps the object mask of {len(low)} of "
+            f"{len(views)} views poorly (IoU {shown}; a match is above 0.9): check the mesh's "
+            "axes (Y-up against Z-up) and units, and the cameras' poses (`layerfit inspect` "
+            "shows both); the fit would explain the difference with the material"
+        )
     empty = [name for name, camera in views if traced[camera][0] == 0]
     if empty:
         out.append(
@@ -247,6 +278,25 @@ def view_warnings(scene: Scene, views: list[tuple[str, Camera]], where: str) -> 
         )
     message = back_face_warning(scene, views, where, traced)
     return out + ([message] if message else [])
+
+
+#: A view whose object mask the traced silhouette overlaps less than this (intersection over
+#: union at pixel centres) is warned: aligned, the shared peers' views score 0.97-0.99; a Y-up
+#: mesh in a Z-up scene 0.37-0.69.
+MIN_SILHOUETTE_IOU = 0.8
+
+
+def _grid_iou(hit: np.ndarray, mask: np.ndarray, coverage: float) -> float:
+    """Intersection over union of traced pixel centres `hit` (a grid over the image) and an
+    object `mask` (the image's size; a bool, or a share above `coverage`) at the same pixels."""
+    ny, nx = hit.shape
+    h, w = mask.shape
+    rows = np.minimum(((np.arange(ny) + 0.5) / ny * h).astype(int), h - 1)
+    cols = np.minimum(((np.arange(nx) + 0.5) / nx * w).astype(int), w - 1)
+    inside = np.asarray(mask)[np.ix_(rows, cols)]
+    inside = inside > coverage if inside.dtype != bool else inside
+    union = np.sum(hit | inside)
+    return float(np.sum(hit & inside) / union) if union else 1.0
 
 
 def back_face_warning(
