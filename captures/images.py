@@ -223,8 +223,10 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
         seethrough = int(np.count_nonzero(pixels[..., alpha] < 1.0))
         if seethrough:
             warnings.append(
-                f"{path}: its alpha channel is ignored ({seethrough} pixels not opaque); give "
-                "a view's mask as its own image (views[i].mask)"
+                f"{path}: its alpha channel is ignored ({seethrough} pixels not opaque): the "
+                "colour is read as it is stored (a capture.toml takes an object mask as its own "
+                "image, views[i].mask; a peer's object is where a view differs from its "
+                "environment)"
             )
     pixels = pixels[..., colour]
     if pixels.shape[2] == 1:
