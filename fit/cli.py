@@ -142,6 +142,12 @@ def _scene_and_material(config: Path, scene: Path | None):
         table = read_toml(scene)
         if "scene" not in table:
             raise CaptureError(f"{scene}: no [scene] table; give a TOML file with one")
+        if toml_kind(table) == "a capture manifest":  # its cameras are its views'
+            raise CaptureError(
+                f"{scene}: is a capture manifest (its cameras are in its [[views]]); give a "
+                "TOML file with a [scene] and its [[scene.cameras]] (configs/glazed-sphere-"
+                "views.toml is one)"
+            )
         the_scene = parse_scene(table["scene"], scene)
         check_uvs(the_scene, material)
         return the_scene, material, spp

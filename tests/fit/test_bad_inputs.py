@@ -502,6 +502,18 @@ CASES: list[Case] = [
         ),
         ("s.toml", "[scene]"),
     ),
+    (  # "scene.cameras: missing; add it", which a manifest may not hold
+        "scene-file-is-a-capture",
+        lambda d: [
+            "render",
+            d / "render.toml",
+            "--scene",
+            d / "cap" / "capture.toml",
+            "--out",
+            d / "o.png",
+        ],
+        ("--scene", "capture.toml: is a capture manifest", "[[scene.cameras]]"),
+    ),
     # --- render options and outputs
     ("render-spp-0", render_args("--spp", "0", "--out", out("o.png")), ("--spp",)),
     ("render-spp-neg", render_args("--spp", "-1", "--out", out("o.png")), ("--spp",)),
