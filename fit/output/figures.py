@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 from captures.files import atomic_path
@@ -14,6 +15,11 @@ def pyplot():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    # a view or key named in a script the font lacks (CJK) draws boxes; its warning (with a
+    # source line, per glyph) on stderr said nothing a user can act on
+    warnings.filterwarnings(
+        "ignore", message=r"Glyph \d+ .* missing from font", category=UserWarning
+    )
     return plt
 
 
