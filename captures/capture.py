@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -167,6 +168,30 @@ def pixel_warnings(image: np.ndarray, name) -> list[str]:
     return out
 
 
+def check_view_names(images: list[Path], where) -> None:
+    """Refuse two views whose image files share a name (a view is named by its file's stem:
+    their names, and their gains' keys, would collide); `where`: the file listing them."""
+    first: dict[str, int] = {}
+    for i, image in enumerate(images):
+        j = first.setdefault(Path(image).stem, i)
+        if j != i:
+            raise CaptureError(
+                f"{where}: views[{i}].image: {Path(image).name} has the name of views[{j}].image "
+                f"({Path(images[j]).name}); a view is named by its file's name: rename one"
+            )
+
+
+def check_cameras_see(scene: Scene, where: Callable[[int], str]) -> None:
+    """Refuse a camera that does not see the object (`where(i)`: the field of camera i)."""
+    center, radius = bounding_sphere(scene.geometry)
+    for i, camera in enumerate(scene.cameras):
+        if not sees(camera, center, radius):
+            raise CaptureError(
+                f"{where(i)} does not see the object (centre {center.round(3)}, radius "
+                f"{radius:.3g}); check its origin, target and field of view"
+            )
+
+
 def check_valid(weight: np.ndarray, where: str) -> None:
     """Refuse a view with no valid pixel (`where`: the file and field that name it)."""
     if weight.mean() == 0:
@@ -270,14 +295,7 @@ def load_capture(path: str | Path) -> Capture:
     )
     manifest = parse_model(Manifest, doc, path)
     settings = manifest.capture
-    first = {}
-    for i, spec in enumerate(manifest.views):
-        j = first.setdefault(spec.image.stem, i)
-        if j != i:
-            raise CaptureError(
-                f"{path}: views[{i}].image: {spec.image.name} has the name of views[{j}].image "
-                f"({manifest.views[j].image.name}); a view is named by its file's name: rename one"
-            )
+    check_view_names([spec.image for spec in manifest.views], path)
     views, warnings, cameras = [], [], []
     for i, spec in enumerate(manifest.views):
         try:
@@ -335,13 +353,7 @@ def load_capture(path: str | Path) -> Capture:
             )
     for view, camera in zip(views, scene.cameras, strict=True):
         view.camera = camera
-    center, radius = bounding_sphere(scene.geometry)
-    for i, camera in enumerate(scene.cameras):
-        if not sees(camera, center, radius):
-            raise CaptureError(
-                f"{path}: views[{i}].camera does not see the object (centre {center.round(3)}, "
-                f"radius {radius:.3g}); check its origin, target and field of view"
-            )
+    check_cameras_see(scene, lambda i: f"{path}: views[{i}].camera")
     for message in warnings:
         log.warning(message)
     warnings += getattr(scene.geometry, "warnings", ())  # the mesh's, said as it was read

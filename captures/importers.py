@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .capture import Capture, View, check_valid, pixel_warnings
+from .capture import Capture, View, check_valid, check_view_names, pixel_warnings
 from .errors import CaptureError
 from .geometry import block_normals, covered_blocks, covered_pixels, normal_map_mesh
 from .images import read_image, read_linear, read_mask, srgb_encode
@@ -39,15 +39,7 @@ def peer_capture(scene_json: str | Path) -> Capture:
     (`Capture.truth_options`), not the qualitative Oren-Nayar's."""
     scene = load_peer_scene(scene_json)
     views, warnings = [], list(scene.meta.get("warnings", ()))
-    first: dict[str, int] = {}
-    for i, path in enumerate(scene.meta["images"]):
-        j = first.setdefault(Path(path).stem, i)
-        if j != i:  # the views' names (their gains', in the summary) would collide
-            raise CaptureError(
-                f"{scene_json}: views[{i}].image: {Path(path).name} has the name of "
-                f"views[{j}].image ({scene.meta['images'][j]}); a view is named by its file's "
-                "name: rename one"
-            )
+    check_view_names(scene.meta["images"], scene_json)
     for i, (camera, path) in enumerate(zip(scene.cameras, scene.meta["images"], strict=True)):
         levels = _integer_levels(path)
         encoding = "linear" if levels is None else "srgb"

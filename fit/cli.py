@@ -96,21 +96,15 @@ def _check_capture_cameras(scene, path: Path) -> None:
     """Refuse cameras whose views a capture cannot hold (what its loader refuses: synth wrote
     them, and inspect and fit then refused the capture): under `MIN_SIDE` pixels a side, or not
     seeing the object."""
-    from captures.capture import MIN_SIDE
-    from captures.scene import bounding_sphere, sees
+    from captures.capture import MIN_SIDE, check_cameras_see
 
-    center, radius = bounding_sphere(scene.geometry)
     for i, camera in enumerate(scene.cameras):
         if min(camera.width, camera.height) < MIN_SIDE:
             raise InputError(
                 f"{path}: scene.cameras[{i}] is {camera.width}x{camera.height}: a capture's views "
                 f"need at least {MIN_SIDE} pixels a side; give a larger width and height"
             )
-        if not sees(camera, center, radius):
-            raise InputError(
-                f"{path}: scene.cameras[{i}] does not see the object (centre {center.round(3)}, "
-                f"radius {radius:.3g}); check its origin, target and field of view"
-            )
+    check_cameras_see(scene, lambda i: f"{path}: scene.cameras[{i}]")
 
 
 def _scene_and_material(config: Path, scene: Path | None):
