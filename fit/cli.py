@@ -7,6 +7,7 @@ import functools
 import logging
 import math
 import os
+import shlex
 import signal
 import sys
 from collections.abc import Callable, Iterator
@@ -671,6 +672,7 @@ def fit(
         raise
     from .batch import Cancelled
     from .commands.fit import Interrupted, check_resume, prepare, run_fit
+    from .errors import OutputError
 
     try:
         prepared = prepare(cfg, holdout)
@@ -705,16 +707,16 @@ def fit(
                 prepared,
                 lambda k, row: bar.advance(tasks[-1]),
             )
-        except InputError as err:
+        except InputError as err:  # a run folder that cannot be written: not bad input
             forget_out()
-            raise _fail(err, 2) from None
+            raise _fail(err, 1 if isinstance(err, OutputError) else 2) from None
         except (Interrupted, KeyboardInterrupt):
             bar.stop()
             forget_out()
             _say(
                 "interrupted:",
                 "yellow",
-                f"checkpoint saved; resume with: layerfit fit {config} --out {out} --resume"
+                f"checkpoint saved; resume with: {_resume_command(config, out, holdout, variant)}"
                 if (out / "checkpoint.npz").exists()
                 else "nothing to resume (stopped before the first checkpoint)",
             )
@@ -770,6 +772,16 @@ def fit(
     results.print(
         f"run folder: {out} (preset.toml, summary.json, report.html)", highlight=False, markup=False
     )
+
+
+def _resume_command(config: Path, out: Path, holdout: int | None, variant: str | None) -> str:
+    """The command that resumes this fit: its config, run folder and the options that change
+    what is fitted (a resume without `--holdout` is refused as another fit), each quoted for a
+    shell."""
+    words = ["layerfit", "fit", str(config), "--out", str(out), "--resume"]
+    words += ["--holdout", str(holdout)] if holdout is not None else []
+    words += ["--variant", variant] if variant else []
+    return shlex.join(words)
 
 
 def _with_starts(cfg, starts: int, resume: bool):
@@ -979,7 +991,8 @@ def _run(argv: list[str] | None) -> int:
             where = f"; see '{ctx.command_path} --help'" if ctx is not None else ""
             _say("error:", "red", f"{err.format_message().rstrip('.')}{where}")
         code = err.exit_code
-    except typer.Abort:
+    except typer.Abort:  # Ctrl-C before a command's own handling (click's)
+        _say("interrupted:", "yellow", "stopped by Ctrl-C or SIGTERM")
         code = 130
     except BackendError as err:  # raised outside _start, e.g. by a library call
         _say("error:", "red", str(err))

@@ -109,7 +109,10 @@ def fit_job(job: Job, cpus: int, variant: str | None, kernel_cache: str) -> dict
         cfg = load_fit_config(job.config, job.capture, job.seed)
         resume = _check_run_folder(job.out)
         prepared = prepare(cfg)
-        if resume:
+        if resume and cfg.starts > 1:  # the config became a multi-start: it has no checkpoint
+            log.warning("fit %s starts again: a multi-start keeps no checkpoint", job.name)
+            resume = False
+        elif resume:
             try:
                 check_resume(prepared, cfg, job.out)
             except InputError as err:  # the config changed since: its checkpoint is stale

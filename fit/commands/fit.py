@@ -43,6 +43,7 @@ from captures.scene import EnvMap
 from materials.params import LAYER_PLUGINS, ChoiceOption
 
 from ..config import FitConfig, config_identity
+from ..errors import OutputError
 from ..material import (
     Free,
     check_uvs,
@@ -56,6 +57,7 @@ from ..material import (
 from ..material.preset import software_versions
 from ..output import ViewPanel, write_report, write_text
 from ..solvers import Checkpoint, Problem, Result, run_schedule
+from ..solvers.base import PhaseReport
 from ..solvers.gn import AUTO_SPLIT
 from ..solvers.schedule import check_saved
 from ..solvers.uncertainty import forward_mode_refusal
@@ -301,6 +303,9 @@ def fit_identity(prepared: Prepared, cfg: FitConfig) -> dict:
     identity = {
         "free": [f.key for f in prepared.free],
         "views": [v.name for v in prepared.problem.capture.views],
+        # a capture made again at another size (same path and names): its vector is the same
+        # size, its gains' and textures' pixels are not (an internal error mid-resume)
+        "view sizes": [list(v.image.shape[:2]) for v in prepared.problem.capture.views],
         "phases": [f"{p.describe()} x {p.steps} {p.options!r}" for p in cfg.phases],
         "seed": cfg.seed,
         # a checkpoint of another capture with the same view names, another starting material
@@ -323,8 +328,18 @@ def check_resume(prepared: Prepared, cfg: FitConfig, out: Path) -> None:
     u = prepared.problem.unconstrained(prepared.start)
     check_saved(saved, u, len(cfg.phases), checkpoint.path)
     theirs, ours = saved.get("identity"), fit_identity(prepared, cfg)
-    if theirs is not None and theirs != ours:
-        what = next(k for k in ours if theirs.get(k) != ours[k])
+    if theirs is None:
+        return
+    unknown = sorted(set(theirs) - set(ours))
+    if unknown:  # a later layerfit's checkpoint: what it compared this one cannot
+        raise InputError(
+            f"{checkpoint.path}: was saved by another version of layerfit (its fit's "
+            f"{', '.join(unknown)} this one does not know); run without --resume (and with "
+            "--force) to start again"
+        )
+    # a key an earlier layerfit did not save is not compared (its checkpoints still resume)
+    what = next((k for k in ours if k in theirs and theirs[k] != ours[k]), None)
+    if what is not None:
         shown = f"the checkpoint's {theirs.get(what)}, this fit's {ours[what]}"
         if what == "loss":
             what = "loss, loss_scale, gains, downscale or holdout"
@@ -463,7 +478,7 @@ def run_fit(
 
         result, spread, start = run_starts(cfg, prepared, holdout, on_start)
         wall = time.perf_counter() - began
-        with _finish_first():
+        with _finish_first(), _writing(out, None):
             summary = _write(cfg, out, capture, held, problem, start, result, wall, starts=spread)
             Checkpoint(out / "checkpoint.npz").remove()  # an earlier single-start run's, if any
         return summary
@@ -481,22 +496,64 @@ def run_fit(
                 checkpoint,
                 resume,
             )
+    except Exception as err:
+        # a second Ctrl-C inside a render reaches here wrapped by JAX's callback (an
+        # XlaRuntimeError): after a stop was asked for, any error is that stop
+        if not checkpoint.stop:
+            raise
+        raise _partial(cfg, out, prepared, checkpoint, began) from err
     except KeyboardInterrupt:
-        checkpoint.flush()
-        state = checkpoint.latest or {}
-        u = np.asarray(state.get("u", state.get("u_phase", problem.unconstrained(start))))
-        history = list(state.get("history_before", [])) + list(state.get("history", []))
-        partial = Result(problem.values(u), u, history[-1] if history else math.nan, 0, history)
-        partial.phase_ends = list(state.get("ends", [])) + ([len(history)] if history else [])
-        wall = time.perf_counter() - began + checkpoint.elapsed_before
-        with _finish_first():
-            _write(cfg, out, capture, held, problem, start, partial, wall, interrupted=True)
-        raise Interrupted(out) from None
+        raise _partial(cfg, out, prepared, checkpoint, began) from None
     wall = time.perf_counter() - began + checkpoint.elapsed_before  # earlier sessions too
-    with _finish_first():
+    with _finish_first(), _writing(out, checkpoint):
         summary = _write(cfg, out, capture, held, problem, start, result, wall)
         checkpoint.remove()
     return summary
+
+
+@contextlib.contextmanager
+def _writing(out: Path, checkpoint: Checkpoint | None):
+    """A run folder that cannot be written (a full disk) is one line saying what was kept."""
+    try:
+        yield
+    except OSError as err:
+        kept = (
+            f"its checkpoint {checkpoint.path} is kept: free space (or fix permissions) and run "
+            "the same command with --resume"
+            if checkpoint is not None and checkpoint.path.exists()
+            else "no checkpoint was saved: free space (or fix permissions) and run it again"
+        )
+        raise OutputError(
+            f"{out}: could not write the run folder ({err.strerror or err}"
+            f"{f': {err.filename}' if err.filename else ''}); {kept}"
+        ) from None
+
+
+def _partial(cfg, out, prepared: Prepared, checkpoint: Checkpoint, began: float) -> Interrupted:
+    """After a stop: the checkpoint and a partial summary and report from its latest state
+    written; the `Interrupted` to raise."""
+    capture, held, problem, start = (
+        prepared.capture,
+        prepared.held,
+        prepared.problem,
+        prepared.start,
+    )
+    checkpoint.flush()
+    state = checkpoint.latest or {}
+    u = np.asarray(state.get("u", state.get("u_phase", problem.unconstrained(start))))
+    steps = state.get("history", [])  # the phase's live list: what was saved of it
+    steps = steps[: state.get("n_history", len(steps))]
+    history = list(state.get("history_before", [])) + list(steps)
+    partial = Result(problem.values(u), u, history[-1] if history else math.nan, 0, history)
+    ends = list(state.get("ends", []))
+    if len(history) > (ends[-1] if ends else 0):  # stopped inside a phase: its steps so far
+        ends.append(len(history))
+    partial.phase_ends = ends
+    partial.reports = [PhaseReport.from_dict(r) for r in state.get("reports", [])]
+    wall = time.perf_counter() - began + checkpoint.elapsed_before
+    with _finish_first(), _writing(out, checkpoint):
+        _write(cfg, out, capture, held, problem, start, partial, wall, interrupted=True)
+    return Interrupted(out)
 
 
 def _finish_first():

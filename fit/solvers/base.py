@@ -41,6 +41,11 @@ class PhaseReport:
     def as_dict(self) -> dict:
         return {**self.__dict__, "outcome": str(self.outcome)}
 
+    @classmethod
+    def from_dict(cls, saved: dict) -> PhaseReport:
+        """The report `as_dict` wrote (a checkpoint's)."""
+        return cls(**{**saved, "outcome": Outcome(saved["outcome"])})
+
 
 @dataclass
 class Result:

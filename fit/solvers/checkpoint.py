@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import os
 import time
 import zipfile
@@ -20,6 +21,8 @@ import numpy as np
 
 from captures.errors import InputError
 from captures.files import atomic_path
+
+log = logging.getLogger(__name__)
 
 #: Seconds of work between checkpoints (`LAYERFIT_CHECKPOINT_SECONDS` overrides, for tests).
 INTERVAL = 30.0
@@ -43,6 +46,7 @@ class Checkpoint:
         self.elapsed_before = 0.0
         self.began = time.monotonic()
         self._last = time.monotonic()
+        self._unsaved = False  # the last write failed (warned once until one succeeds)
 
     def offer(self, state: dict) -> None:
         """Remember `state` (it may hold references the caller keeps changing: it is converted
@@ -79,9 +83,21 @@ class Checkpoint:
         meta["elapsed_s"] = self.elapsed()
         buffer = io.BytesIO()
         np.savez(buffer, meta=np.array(json.dumps(meta)), **arrays)
-        with atomic_path(self.path) as tmp:
-            tmp.write_bytes(buffer.getvalue())
         self._last = time.monotonic()
+        try:
+            with atomic_path(self.path) as tmp:
+                tmp.write_bytes(buffer.getvalue())
+        except OSError as err:  # a full disk: the fit goes on (it is only lost work if killed)
+            if not self._unsaved:
+                log.warning(
+                    "%s: could not save the checkpoint (%s); the fit goes on, and a --resume "
+                    "would start from the last one saved",
+                    self.path,
+                    err.strerror or err,
+                )
+            self._unsaved = True
+        else:
+            self._unsaved = False
 
     def elapsed(self) -> float:
         """Seconds of work on this run so far, earlier sessions included."""

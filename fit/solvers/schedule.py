@@ -23,7 +23,7 @@ from captures.errors import InputError
 from captures.model import FieldError
 
 from ..limits import MAX_SPP
-from .base import Options, Outcome, PhaseReport, Result
+from .base import Options, PhaseReport, Result
 from .checkpoint import Checkpoint
 from .problem import Problem
 from .registry import SOLVERS
@@ -228,8 +228,11 @@ def run_schedule(
         checkpoint.elapsed_before = float(saved.get("elapsed_s", 0.0))
         first, u = int(saved["phase"]), np.asarray(saved["u_phase"], np.float32)
         history, ends = list(saved["history_before"]), list(saved["ends"])
-        reports = [PhaseReport(**{**r, "outcome": Outcome(r["outcome"])}) for r in saved["reports"]]
+        reports = [PhaseReport.from_dict(r) for r in saved["reports"]]
         steps = sum(r.steps for r in reports)
+        # stopped before the first new step, the partial summary is the saved state's (it was
+        # the start's values)
+        checkpoint.latest = saved
         if progress:  # the phases finished before the stop show as finished
             for k, report in enumerate(reports[:first]):
                 progress(k, phases[k].steps, report.loss)
@@ -294,4 +297,6 @@ def run_schedule(
             # would not match the curvature rendered here
             tail_gradients=result.tail_gradients if phases[-1].downscale == 1 else None,
         )
+        if checkpoint is not None and checkpoint.stop:  # Ctrl-C during it: no sd, resumable
+            raise KeyboardInterrupt
     return result

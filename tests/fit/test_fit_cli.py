@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -23,10 +25,10 @@ from fit.material import load_preset
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def small_capture(folder: Path, views: int = 1, spp: int = 256) -> None:
-    """The glazed sphere at 40x30 from `views` cameras around it."""
+def small_capture(folder: Path, views: int = 1, spp: int = 256, size=(40, 30)) -> None:
+    """The glazed sphere at 40x30 (or `size`) from `views` cameras around it."""
     cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
-    base = dataclasses.replace(cfg.scene.cameras[0], width=40, height=30)
+    base = dataclasses.replace(cfg.scene.cameras[0], width=size[0], height=size[1])
     cameras = []
     for k in range(views):
         angle = np.radians(35 * k)
@@ -277,3 +279,189 @@ def test_ctrl_c_while_the_run_folder_is_written_waits_for_it(tmp_path, monkeypat
     names = {p.name for p in (tmp_path / "run").iterdir()}
     assert {"preset.toml", "summary.json", "report.html"} <= names and "checkpoint.npz" not in names
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+
+def _ctrl_c(times: int = 1) -> None:
+    """Send this process Ctrl-C `times` times (the fit's handler sees the first; a second one
+    raises where the process is, as a user's second press does)."""
+    for _ in range(times):
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.01)  # the handler runs between bytecodes
+
+
+def test_a_second_ctrl_c_inside_a_render_still_writes_the_partial_run(tmp_path, monkeypatch):
+    """The second Ctrl-C raised inside a render, in JAX's callback, reached the fit wrapped (an
+    XlaRuntimeError): an internal error, no partial summary. After a stop any error is that
+    stop."""
+    from fit.commands import fit as fit_command
+    from fit.config import load_fit_config
+    from fit.render import Renderer
+
+    small_capture(tmp_path / "cap", spp=16)
+    (tmp_path / "fit.toml").write_text(RESUMABLE.replace("steps = 60", "steps = 30"))
+    real, calls = Renderer.vjp, []
+
+    def twice_at_the_fifth(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 5:
+            _ctrl_c(2)
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Renderer, "vjp", twice_at_the_fifth)
+    with pytest.raises(fit_command.Interrupted):
+        fit_command.run_fit(load_fit_config(tmp_path / "fit.toml"), tmp_path / "run")
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["interrupted"] and 0 < len(summary["history"]) < 30
+    assert (tmp_path / "run" / "checkpoint.npz").exists()
+
+
+def test_ctrl_c_during_the_uncertainty_stops_and_resumes_only_it(tmp_path, monkeypatch):
+    """A first Ctrl-C during the uncertainty was ignored (the fit ended, exit 0). It now stops
+    there: a partial run folder at the fitted values (each phase's outcome, its end once), the
+    checkpoint at the last phase's end, from which --resume computes only the sd."""
+    from fit.commands import fit as fit_command
+    from fit.config import load_fit_config
+    from fit.solvers import schedule
+
+    small_capture(tmp_path / "cap", spp=16)
+    (tmp_path / "fit.toml").write_text(
+        RESUMABLE.replace("steps = 60", "steps = 6")
+        + '[[fit.phases]]\nsolver = "adam"\nsteps = 4\nspp = 4\nlr = 0.01\n'
+    )
+    real = schedule.uncertainty
+
+    def ctrl_c_inside(*args, **kwargs):
+        _ctrl_c()
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(schedule, "uncertainty", ctrl_c_inside)
+    cfg, run = load_fit_config(tmp_path / "fit.toml"), tmp_path / "run"
+    with pytest.raises(fit_command.Interrupted):
+        fit_command.run_fit(cfg, run)
+    partial = json.loads((run / "summary.json").read_text())
+    assert partial["interrupted"] and partial["std"] is None
+    assert partial["phase_ends"] == [6, 10] and len(partial["history"]) == 10
+    assert [o["steps"] for o in partial["outcomes"]] == [6, 4]  # they were empty
+    monkeypatch.setattr(schedule, "uncertainty", real)
+    progress = []
+    whole = fit_command.run_fit(cfg, run, lambda *a: progress.append(a), resume=True)
+    assert not whole["interrupted"] and whole["std"] is not None
+    assert whole["values"] == partial["values"] and whole["phase_ends"] == [6, 10]
+    assert [(k, n) for k, n, _ in progress] == [(0, 6), (1, 4)]  # no step run again
+
+
+def test_a_resumed_fit_stopped_before_its_first_step_keeps_the_saved_state(tmp_path, monkeypatch):
+    """Stopped again before the resumed run's first step (while it compiles), the partial
+    summary held the start's values and no history: the checkpoint's state is kept."""
+    from fit.commands import fit as fit_command
+    from fit.config import load_fit_config
+    from fit.solvers import registry
+
+    small_capture(tmp_path / "cap", spp=16)
+    (tmp_path / "fit.toml").write_text(RESUMABLE.replace("steps = 60", "steps = 30"))
+    cfg, run = load_fit_config(tmp_path / "fit.toml"), tmp_path / "run"
+    calls = []
+
+    def ctrl_c_at_the_tenth_step(k, n, loss):
+        calls.append(n)
+        if len(calls) == 10:
+            _ctrl_c()
+
+    with pytest.raises(fit_command.Interrupted):
+        fit_command.run_fit(cfg, run, ctrl_c_at_the_tenth_step)
+    first = json.loads((run / "summary.json").read_text())
+    assert 10 <= len(first["history"]) < 30 and first["phase_ends"] == [len(first["history"])]
+
+    class Stopped(registry.SOLVERS["adam"]):
+        def run(self, *args, **kwargs):
+            raise KeyboardInterrupt
+
+    monkeypatch.setitem(registry.SOLVERS, "adam", Stopped)
+    with pytest.raises(fit_command.Interrupted):
+        fit_command.run_fit(cfg, run, resume=True)
+    second = json.loads((run / "summary.json").read_text())
+    assert second["history"] == first["history"] and second["values"] == first["values"]
+    assert second["values"] != second["start"]
+
+
+def test_resume_refuses_a_capture_made_again_at_another_size(tmp_path):
+    """Same path, same view names, other image sizes: refused before any work (it was an
+    internal error mid-resume); a checkpoint naming what this layerfit does not know is refused
+    as another version's (it was a StopIteration)."""
+    from fit.commands import fit as fit_command
+    from fit.config import load_fit_config
+    from fit.solvers import Checkpoint
+
+    small_capture(tmp_path / "cap", spp=4)
+    (tmp_path / "fit.toml").write_text(RESUMABLE)
+    cfg, run = load_fit_config(tmp_path / "fit.toml"), tmp_path / "run"
+    prepared = fit_command.prepare(cfg)
+    checkpoint = Checkpoint(run / "checkpoint.npz")
+    checkpoint.identity = fit_command.fit_identity(prepared, cfg)
+    checkpoint.latest = {
+        "phase": 0,
+        "u_phase": np.zeros(3, np.float32),
+        "history_before": [],
+        "ends": [],
+        "reports": [],
+    }
+    checkpoint.flush()
+    fit_command.check_resume(prepared, cfg, run)  # its own: accepted
+    older = {k: v for k, v in checkpoint.identity.items() if k != "view sizes"}
+    checkpoint.identity = older  # an earlier layerfit's: what it has is compared
+    checkpoint.flush()
+    fit_command.check_resume(prepared, cfg, run)
+    checkpoint.identity = {**older, "lens": "fisheye"}
+    checkpoint.flush()
+    with pytest.raises(fit_command.InputError, match=r"another version of layerfit.*lens"):
+        fit_command.check_resume(prepared, cfg, run)
+    checkpoint.identity = fit_command.fit_identity(prepared, cfg)
+    checkpoint.flush()
+    shutil.rmtree(tmp_path / "cap")
+    small_capture(tmp_path / "cap", spp=4, size=(20, 16))  # made again, at another size
+    with pytest.raises(fit_command.InputError, match="other view sizes"):
+        fit_command.check_resume(fit_command.prepare(cfg), cfg, run)
+
+
+def test_a_full_disk_is_one_line_and_keeps_the_checkpoint(tmp_path, monkeypatch, caplog):
+    """A checkpoint that cannot be saved is warned once and the fit goes on; a run folder that
+    cannot be written is an `OutputError` naming the folder and what was kept (it was an
+    internal error)."""
+    import errno
+
+    from fit.commands import fit as fit_command
+    from fit.config import load_fit_config
+    from fit.errors import OutputError
+    from fit.solvers import checkpoint as checkpoint_module
+
+    small_capture(tmp_path / "cap", spp=16)
+    (tmp_path / "fit.toml").write_text(RESUMABLE.replace("steps = 60", "steps = 6"))
+    cfg, run = load_fit_config(tmp_path / "fit.toml"), tmp_path / "run"
+    real_atomic, full = checkpoint_module.atomic_path, OSError(errno.ENOSPC, "No space left")
+
+    def no_space(*args, **kwargs):
+        raise full
+
+    monkeypatch.setattr(checkpoint_module, "atomic_path", no_space)
+    monkeypatch.setattr(fit_command, "write_text", no_space)
+    monkeypatch.setenv("LAYERFIT_CHECKPOINT_SECONDS", "0")
+    unwritable = re.escape(f"{run}: could not write the run folder") + ".*no checkpoint"
+    with pytest.raises(OutputError, match=unwritable):
+        fit_command.run_fit(cfg, run)
+    assert sum("could not save the checkpoint" in r.getMessage() for r in caplog.records) == 1
+    monkeypatch.setattr(checkpoint_module, "atomic_path", real_atomic)
+    with pytest.raises(OutputError, match=r"checkpoint .* is kept: .* --resume"):
+        fit_command.run_fit(cfg, run)
+    assert (run / "checkpoint.npz").exists() and not (run / "summary.json").exists()
+
+
+def test_the_printed_resume_command_keeps_holdout_and_quotes_paths():
+    import shlex
+
+    from fit.cli import _resume_command
+
+    line = _resume_command(Path("my fits/cup.toml"), Path("out/a b"), 1, "llvm_ad_rgb")
+    assert shlex.split(line) == [
+        "layerfit", "fit", "my fits/cup.toml", "--out", "out/a b", "--resume",
+        "--holdout", "1", "--variant", "llvm_ad_rgb",
+    ]  # fmt: skip
