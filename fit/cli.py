@@ -716,7 +716,8 @@ def fit(
             _say(
                 "interrupted:",
                 "yellow",
-                f"checkpoint saved; resume with: {_resume_command(config, out, holdout, variant)}"
+                f"checkpoint saved; resume with: "
+                f"{_resume_command(config, out, holdout, variant, starts)}"
                 if (out / "checkpoint.npz").exists()
                 else "nothing to resume (stopped before the first checkpoint)",
             )
@@ -774,13 +775,16 @@ def fit(
     )
 
 
-def _resume_command(config: Path, out: Path, holdout: int | None, variant: str | None) -> str:
+def _resume_command(
+    config: Path, out: Path, holdout: int | None, variant: str | None, starts: int | None = None
+) -> str:
     """The command that resumes this fit: its config, run folder and the options that change
     what is fitted (a resume without `--holdout` is refused as another fit), each quoted for a
     shell."""
     words = ["layerfit", "fit", str(config), "--out", str(out), "--resume"]
     words += ["--holdout", str(holdout)] if holdout is not None else []
     words += ["--variant", variant] if variant else []
+    words += ["--starts", str(starts)] if starts is not None else []  # 1 over a config's many
     return shlex.join(words)
 
 
@@ -998,8 +1002,10 @@ def _run(argv: list[str] | None) -> int:
         _say("error:", "red", str(err))
         code = 1
     except InputError as err:  # a command that let one through
+        from .errors import OutputError
+
         _say("error:", "red", str(err))
-        code = 2
+        code = 1 if isinstance(err, OutputError) else 2
     except Exception as err:
         if os.environ.get("LAYERFIT_DEBUG"):
             raise

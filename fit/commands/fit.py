@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import difflib
+import errno
 import html
 import json
 import logging
@@ -317,6 +318,10 @@ def fit_identity(prepared: Prepared, cfg: FitConfig) -> dict:
     return json.loads(json.dumps(identity, default=str))
 
 
+#: Keys of `fit_identity` that earlier layerfits did not save (their checkpoints still resume).
+LATER_IDENTITY = frozenset({"view sizes"})
+
+
 def check_resume(prepared: Prepared, cfg: FitConfig, out: Path) -> None:
     """Refuse, before any work, a checkpoint in `out` that another fit saved (`fit_identity`:
     other free parameters, views, phases, seed, capture, starting material or loss; a vector of
@@ -330,6 +335,11 @@ def check_resume(prepared: Prepared, cfg: FitConfig, out: Path) -> None:
     theirs, ours = saved.get("identity"), fit_identity(prepared, cfg)
     if theirs is None:
         return
+    if not isinstance(theirs, dict):
+        raise InputError(
+            f"{checkpoint.path}: its fit's identity is not a table (not a checkpoint layerfit "
+            "saves); run without --resume (and with --force) to start again"
+        )
     unknown = sorted(set(theirs) - set(ours))
     if unknown:  # a later layerfit's checkpoint: what it compared this one cannot
         raise InputError(
@@ -337,8 +347,12 @@ def check_resume(prepared: Prepared, cfg: FitConfig, out: Path) -> None:
             f"{', '.join(unknown)} this one does not know); run without --resume (and with "
             "--force) to start again"
         )
-    # a key an earlier layerfit did not save is not compared (its checkpoints still resume)
-    what = next((k for k in ours if k in theirs and theirs[k] != ours[k]), None)
+    # a key an earlier layerfit did not save (`LATER_IDENTITY`) is not compared: its
+    # checkpoints still resume; any other key missing is a difference
+    what = next(
+        (k for k in ours if theirs.get(k) != ours[k] and (k in theirs or k not in LATER_IDENTITY)),
+        None,
+    )
     if what is not None:
         shown = f"the checkpoint's {theirs.get(what)}, this fit's {ours[what]}"
         if what == "loss":
@@ -498,8 +512,8 @@ def run_fit(
             )
     except Exception as err:
         # a second Ctrl-C inside a render reaches here wrapped by JAX's callback (an
-        # XlaRuntimeError): after a stop was asked for, any error is that stop
-        if not checkpoint.stop:
+        # XlaRuntimeError naming it); any other error is not the stop
+        if not (checkpoint.stop and _wraps_interrupt(err)):
             raise
         raise _partial(cfg, out, prepared, checkpoint, began) from err
     except KeyboardInterrupt:
@@ -511,12 +525,21 @@ def run_fit(
     return summary
 
 
+#: What a write into a run folder fails with that its user can fix (space, quota, permissions).
+WRITE_ERRORS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EROFS, errno.EPERM})
+
+
 @contextlib.contextmanager
 def _writing(out: Path, checkpoint: Checkpoint | None):
     """A run folder that cannot be written (a full disk) is one line saying what was kept."""
     try:
         yield
     except OSError as err:
+        inside = isinstance(err.filename, str) and Path(err.filename).resolve().is_relative_to(
+            Path(out).resolve()
+        )
+        if err.errno not in WRITE_ERRORS and not inside:  # not the folder's: not this
+            raise
         kept = (
             f"its checkpoint {checkpoint.path} is kept: free space (or fix permissions) and run "
             "the same command with --resume"
@@ -527,6 +550,18 @@ def _writing(out: Path, checkpoint: Checkpoint | None):
             f"{out}: could not write the run folder ({err.strerror or err}"
             f"{f': {err.filename}' if err.filename else ''}); {kept}"
         ) from None
+
+
+def _wraps_interrupt(err: BaseException) -> bool:
+    """Whether `err` is a `KeyboardInterrupt` wrapped by a library (JAX's callback error names
+    it in its message; others chain it)."""
+    seen = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, KeyboardInterrupt) or "KeyboardInterrupt" in str(err):
+            return True
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return False
 
 
 def _partial(cfg, out, prepared: Prepared, checkpoint: Checkpoint, began: float) -> Interrupted:

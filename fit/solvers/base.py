@@ -43,8 +43,9 @@ class PhaseReport:
 
     @classmethod
     def from_dict(cls, saved: dict) -> PhaseReport:
-        """The report `as_dict` wrote (a checkpoint's)."""
-        return cls(**{**saved, "outcome": Outcome(saved["outcome"])})
+        """The report `as_dict` wrote (a checkpoint's; fields a later layerfit added dropped)."""
+        known = {k: v for k, v in saved.items() if k in cls.__dataclass_fields__}
+        return cls(**{**known, "outcome": Outcome(saved["outcome"])})
 
 
 @dataclass

@@ -296,7 +296,8 @@ def run_schedule(
             # the tail's gradients are of the last phase's loss: at another resolution they
             # would not match the curvature rendered here
             tail_gradients=result.tail_gradients if phases[-1].downscale == 1 else None,
+            # a Ctrl-C stops it between two renders (its checkpoint: the last phase's end);
+            # once it is done, the fit is whole and is written
+            stop=None if checkpoint is None else (lambda: checkpoint.stop),
         )
-        if checkpoint is not None and checkpoint.stop:  # Ctrl-C during it: no sd, resumable
-            raise KeyboardInterrupt
     return result

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -170,6 +172,7 @@ def uncertainty(
     downscale: int = 1,
     extra_variance: np.ndarray | None = None,
     tail_gradients: tuple[np.ndarray, np.ndarray] | None = None,
+    stop: Callable[[], bool] | None = None,
 ) -> tuple[dict, np.ndarray, list[str]]:
     """Gauss-Newton covariance at the solver's vector `u` in its sandwich form,
     `H^-1 (sum_p J_p^T r_p r_p^T J_p) H^-1 * N / (N - P)` (p: a pixel's channels; `_meat`) with
@@ -205,14 +208,23 @@ def uncertainty(
     primal image's noise alone about 20 %), far more than the image's noise says. Otherwise
     `extra_variance` (per solver coordinate, from the iterates' scatter: `Result.tail_variance`).
 
+    `stop()` is asked before each render; True (a Ctrl-C) raises `KeyboardInterrupt` there.
+
     Returns per-parameter standard deviations, the correlation matrix, and the parameters whose
     standard deviation exceeds `threshold` of their range (of their value, for gains and emitter
     scales) or that are not determined at all."""
     n = problem.n_material
     u = jnp.asarray(u, jnp.float32)
     half = max(spp // 2, 1)
-    r1, jac1 = finite_rows(*linearised(problem, u, half, seed, downscale))
-    r2, jac2 = finite_rows(*linearised(problem, u, half, seed + CROSS_SEED_OFFSET, downscale))
+
+    def render(spp_k: int, seed_k: int):
+        """One Jacobian render; a stop asked for (Ctrl-C) raises between two of them."""
+        if stop is not None and stop():
+            raise KeyboardInterrupt
+        return finite_rows(*linearised(problem, u, spp_k, seed_k, downscale))
+
+    r1, jac1 = render(half, seed)
+    r2, jac2 = render(half, seed + CROSS_SEED_OFFSET)
     bread, undetermined = inverse_determined(cross_product(jac1, jac2))
     for k in range(1, UNDETERMINED_RETRIES + 1):
         if not undetermined.any():
@@ -220,8 +232,8 @@ def uncertainty(
         # more samples where the noise hid a direction: each series the mean of its renders
         # (still independent of the other, so their cross product stays unbiased)
         more = seed + k * RETRY_SEED_OFFSET
-        r3, jac3 = finite_rows(*linearised(problem, u, half, more, downscale))
-        r4, jac4 = finite_rows(*linearised(problem, u, half, more + CROSS_SEED_OFFSET, downscale))
+        r3, jac3 = render(half, more)
+        r4, jac4 = render(half, more + CROSS_SEED_OFFSET)
         r1, jac1 = r1 + (r3 - r1) / (k + 1), jac1 + (jac3 - jac1) / (k + 1)
         r2, jac2 = r2 + (r4 - r2) / (k + 1), jac2 + (jac4 - jac2) / (k + 1)
         bread, undetermined = inverse_determined(cross_product(jac1, jac2))

@@ -308,11 +308,38 @@ def test_a_second_ctrl_c_inside_a_render_still_writes_the_partial_run(tmp_path, 
         return real(self, *args, **kwargs)
 
     monkeypatch.setattr(Renderer, "vjp", twice_at_the_fifth)
-    with pytest.raises(fit_command.Interrupted):
+    with pytest.raises(fit_command.Interrupted) as stopped:
         fit_command.run_fit(load_fit_config(tmp_path / "fit.toml"), tmp_path / "run")
+    # it came wrapped (else the plain KeyboardInterrupt path, not this one, was tested)
+    assert isinstance(stopped.value.__cause__, Exception)
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["interrupted"] and 0 < len(summary["history"]) < 30
     assert (tmp_path / "run" / "checkpoint.npz").exists()
+
+
+def test_an_error_after_a_stop_that_is_not_the_stop_is_raised(tmp_path, monkeypatch):
+    """Only a wrapped KeyboardInterrupt is taken for the stop: a real error after a Ctrl-C
+    stays an error (reported with its cause), not an 'interrupted, resume with'."""
+    from fit.commands import fit as fit_command
+    from fit.config import load_fit_config
+    from fit.render import Renderer
+
+    small_capture(tmp_path / "cap", spp=16)
+    (tmp_path / "fit.toml").write_text(RESUMABLE.replace("steps = 60", "steps = 30"))
+    calls = []
+
+    def stop_then_fail(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 5:
+            _ctrl_c()
+            raise MemoryError("out of memory")  # JAX's callback wraps it too
+        return real(self, *args, **kwargs)
+
+    real = Renderer.vjp
+    monkeypatch.setattr(Renderer, "vjp", stop_then_fail)
+    with pytest.raises(Exception, match="out of memory") as failed:
+        fit_command.run_fit(load_fit_config(tmp_path / "fit.toml"), tmp_path / "run")
+    assert not isinstance(failed.value, fit_command.Interrupted)
 
 
 def test_ctrl_c_during_the_uncertainty_stops_and_resumes_only_it(tmp_path, monkeypatch):
@@ -411,6 +438,11 @@ def test_resume_refuses_a_capture_made_again_at_another_size(tmp_path):
     checkpoint.identity = older  # an earlier layerfit's: what it has is compared
     checkpoint.flush()
     fit_command.check_resume(prepared, cfg, run)
+    before = {k: v for k, v in older.items() if k != "capture"}  # a key always compared
+    checkpoint.identity = before
+    checkpoint.flush()
+    with pytest.raises(fit_command.InputError, match="other capture"):
+        fit_command.check_resume(prepared, cfg, run)
     checkpoint.identity = {**older, "lens": "fisheye"}
     checkpoint.flush()
     with pytest.raises(fit_command.InputError, match=r"another version of layerfit.*lens"):
