@@ -710,17 +710,12 @@ def fit(
         except InputError as err:  # a run folder that cannot be written: not bad input
             forget_out()
             raise _fail(err, 1 if isinstance(err, OutputError) else 2) from None
-        except (Interrupted, KeyboardInterrupt):
+        except (Interrupted, KeyboardInterrupt) as err:
             bar.stop()
             forget_out()
-            _say(
-                "interrupted:",
-                "yellow",
-                f"checkpoint saved; resume with: "
-                f"{_resume_command(config, out, holdout, variant, starts)}"
-                if (out / "checkpoint.npz").exists()
-                else "nothing to resume (stopped before the first checkpoint)",
-            )
+            if getattr(err, "unwritten", None):  # a full disk: the partial report is not there
+                _say("error:", "red", err.unwritten)
+            _say("interrupted:", "yellow", _stopped(err, config, out, holdout, variant, starts))
             raise typer.Exit(130) from None
         except Cancelled as err:  # --starts: the Ray tasks were cancelled
             bar.stop()
@@ -773,6 +768,19 @@ def fit(
     results.print(
         f"run folder: {out} (preset.toml, summary.json, report.html)", highlight=False, markup=False
     )
+
+
+def _stopped(err, config, out, holdout, variant, starts) -> str:
+    """What a stopped fit left: its checkpoint (the stop's own state, or an earlier one when a
+    full disk kept that from being written) and how to resume it."""
+    if not (out / "checkpoint.npz").exists():
+        return "nothing to resume (stopped before the first checkpoint)"
+    what = (
+        "checkpoint saved"
+        if getattr(err, "saved", True)
+        else "the stop's state could not be saved (an earlier checkpoint is kept)"
+    )
+    return f"{what}; resume with: {_resume_command(config, out, holdout, variant, starts)}"
 
 
 def _resume_command(

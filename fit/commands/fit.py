@@ -70,11 +70,13 @@ REPORT_SPP = 64
 
 
 class Interrupted(Exception):
-    """A fit stopped by Ctrl-C after saving its checkpoint and a partial report."""
+    """A fit stopped by Ctrl-C after saving its checkpoint and a partial report. `saved`: whether
+    the stop's own state reached the checkpoint (False: a full disk kept an earlier one, or
+    none); `unwritten`: why the partial report could not be written, if it could not."""
 
-    def __init__(self, out: Path):
+    def __init__(self, out: Path, saved: bool = True, unwritten: str | None = None):
         super().__init__(f"interrupted; the checkpoint and a partial report are in {out}")
-        self.out = out
+        self.out, self.saved, self.unwritten = out, saved, unwritten
 
 
 def held_out(n_views: int, n: int) -> list[int]:
@@ -586,9 +588,12 @@ def _partial(cfg, out, prepared: Prepared, checkpoint: Checkpoint, began: float)
     partial.phase_ends = ends
     partial.reports = [PhaseReport.from_dict(r) for r in state.get("reports", [])]
     wall = time.perf_counter() - began + checkpoint.elapsed_before
-    with _finish_first(), _writing(out, checkpoint):
-        _write(cfg, out, capture, held, problem, start, partial, wall, interrupted=True)
-    return Interrupted(out)
+    try:
+        with _finish_first(), _writing(out, checkpoint):
+            _write(cfg, out, capture, held, problem, start, partial, wall, interrupted=True)
+    except OutputError as err:  # still a stop (exit 130), with what could not be written
+        return Interrupted(out, not checkpoint.unsaved, str(err))
+    return Interrupted(out, not checkpoint.unsaved)
 
 
 def _finish_first():

@@ -99,6 +99,11 @@ class Checkpoint:
         else:
             self._unsaved = False
 
+    @property
+    def unsaved(self) -> bool:
+        """Whether the latest write failed (the file on disk, if any, is an earlier state)."""
+        return self._unsaved
+
     def elapsed(self) -> float:
         """Seconds of work on this run so far, earlier sessions included."""
         return self.elapsed_before + time.monotonic() - self.began

@@ -487,6 +487,52 @@ def test_a_full_disk_is_one_line_and_keeps_the_checkpoint(tmp_path, monkeypatch,
     assert (run / "checkpoint.npz").exists() and not (run / "summary.json").exists()
 
 
+def test_a_stop_on_a_full_disk_is_still_a_stop_and_says_which_checkpoint(tmp_path, monkeypatch):
+    """Ctrl-C after the disk filled: still `Interrupted` (exit 130, it was exit 1 as a failed
+    write), saying the partial report could not be written and that the checkpoint on disk is
+    an earlier one (it said "checkpoint saved")."""
+    import errno
+
+    from fit.cli import _stopped
+    from fit.commands import fit as fit_command
+    from fit.config import load_fit_config
+    from fit.solvers import checkpoint as checkpoint_module
+
+    small_capture(tmp_path / "cap", spp=16)
+    (tmp_path / "fit.toml").write_text(RESUMABLE.replace("steps = 60", "steps = 30"))
+    cfg, run = load_fit_config(tmp_path / "fit.toml"), tmp_path / "run"
+    real_atomic, calls = checkpoint_module.atomic_path, []
+
+    def no_space(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    def fill_the_disk_then_ctrl_c(k, n, loss):
+        calls.append(n)
+        if len(calls) == 4:  # one checkpoint written by then (interval 0): the disk fills
+            monkeypatch.setattr(checkpoint_module, "atomic_path", no_space)
+            monkeypatch.setattr(fit_command, "write_text", no_space)
+        if len(calls) == 8:
+            _ctrl_c()
+
+    monkeypatch.setenv("LAYERFIT_CHECKPOINT_SECONDS", "0")
+    with pytest.raises(fit_command.Interrupted) as caught:
+        fit_command.run_fit(cfg, run, fill_the_disk_then_ctrl_c)
+    stop = caught.value
+    assert not stop.saved and "could not write the run folder" in stop.unwritten
+    assert (run / "checkpoint.npz").exists() and not (run / "summary.json").exists()
+    line = _stopped(stop, tmp_path / "fit.toml", run, None, None, None)
+    assert line.startswith("the stop's state could not be saved (an earlier checkpoint is kept)")
+    assert "--resume" in line
+    monkeypatch.setattr(checkpoint_module, "atomic_path", real_atomic)
+    assert _checkpoint_step(run) < 8  # the kept checkpoint is the earlier state
+
+
+def _checkpoint_step(run: Path) -> int:
+    from fit.solvers import Checkpoint
+
+    return int(Checkpoint(run / "checkpoint.npz").load()["step"])
+
+
 def test_the_printed_resume_command_keeps_holdout_and_quotes_paths():
     import shlex
 
