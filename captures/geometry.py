@@ -194,6 +194,20 @@ def winding_numbers(positions: np.ndarray, faces: np.ndarray, points: np.ndarray
     return out
 
 
+def closed(positions: np.ndarray, faces: np.ndarray) -> bool:
+    """Whether a triangle mesh is closed: every edge, its corners welded by position, shared by
+    exactly two triangles (whichever way they are wound)."""
+    faces = np.asarray(faces)
+    if len(faces) == 0:
+        return False
+    _, weld = np.unique(np.asarray(positions), axis=0, return_inverse=True)
+    corners = np.ravel(weld)[faces]
+    a, b = corners.ravel(), np.roll(corners, -1, axis=1).ravel()
+    keep = a != b  # a degenerate triangle's collapsed side joins nothing
+    edges = np.stack([np.minimum(a[keep], b[keep]), np.maximum(a[keep], b[keep])], axis=1)
+    return bool(np.all(np.unique(edges, axis=0, return_counts=True)[1] == 2))
+
+
 #: `crossings` casts its rays along these directions (skew to the axes: a ray along an axis of
 #: an axis-aligned mesh runs along its edges).
 _RAY_DIRECTIONS = np.array([[0.5377, 0.6919, 0.4817], [-0.7071, 0.1, -0.7], [0.2, -0.9, 0.3873]])

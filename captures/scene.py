@@ -196,11 +196,12 @@ def bounding_sphere(geometry: Geometry) -> tuple[np.ndarray, float]:
 
 
 def inside(geometry: Geometry, points: np.ndarray) -> np.ndarray:
-    """Whether each point lies inside the object. A mesh: inside its box, and both its winding
-    number above 3/4 in magnitude (about 1 inside a closed mesh whichever way it is wound; an
-    open flat sheet stays below 1/2) and most of three rays crossing its faces an odd number of
-    times (faces wound against their neighbours spoil the winding number, not the count)."""
-    from .geometry import crossings, cup_mesh, obj_triangles, winding_numbers
+    """Whether each point lies inside the object. A mesh: inside its box, and most of three rays
+    crossing its faces an odd number of times; where the mesh is open (an edge not shared by
+    exactly two faces) also its winding number above 3/4 in magnitude (about 1 inside, an open
+    flat sheet below 1/2). The count alone decides a closed mesh: faces wound against their
+    neighbours spoil the winding number, not the count."""
+    from .geometry import closed, crossings, cup_mesh, obj_triangles, winding_numbers
 
     points = np.atleast_2d(np.asarray(points, float))
     if isinstance(geometry, Sphere):
@@ -225,9 +226,10 @@ def inside(geometry: Geometry, points: np.ndarray) -> np.ndarray:
     else:
         positions, faces = obj_triangles(geometry.path)
     unique, index = np.unique(points[near], axis=0, return_inverse=True)
-    wound = np.abs(winding_numbers(positions, faces, unique)) > 0.75
     odd = np.sum(crossings(positions, faces, unique) % 2, axis=1) >= 2  # most of three rays
-    out[near] = (wound & odd)[np.ravel(index)]
+    if not closed(positions, faces):  # a ray may leave through a hole: the winding number too
+        odd &= np.abs(winding_numbers(positions, faces, unique)) > 0.75
+    out[near] = odd[np.ravel(index)]
     return out
 
 

@@ -556,16 +556,27 @@ def parse_scene(data: dict, file: Path) -> Scene:
             "from the mesh's vertices, the cameras' origins and targets and the lights' "
             "positions)"
         )
-    origins = np.array([camera.origin for camera in scene.cameras], float)
-    within = np.flatnonzero(inside(scene.geometry, origins))
+    # the cameras' origins and the lights' positions, each with its field (one mesh read)
+    where = [(f"cameras[{i}].origin", c.origin) for i, c in enumerate(scene.cameras)]
+    for i, light in enumerate(scene.lights):
+        if isinstance(light, RectLight | PointLight):
+            field = "center" if isinstance(light, RectLight) else "position"
+            where.append((f"lights[{i}].{field}", getattr(light, field)))
+    points = np.array([point for _, point in where], float).reshape(-1, 3)
+    within = np.flatnonzero(inside(scene.geometry, points))
     if len(within):
-        i = within[0]
-        others = f" (and {len(within) - 1} more cameras)" if len(within) > 1 else ""
+        name, point = where[within[0]]
+        others = f" (and {len(within) - 1} more)" if len(within) > 1 else ""
+        what = (
+            "the camera would see the object's inside; move it out"
+            if name.startswith("cameras")
+            else "the light would light the object's inside only; move it out"
+        )
         raise CaptureError(
-            f"{file}: scene.cameras[{i}].origin {list(scene.cameras[i].origin)} is inside the "
-            f"object{others} (centre {np.round(center, 3).tolist()}, radius {radius:.3g}): it "
-            "would see the object's inside; move the camera out (check the units and the axes: "
-            "a mesh in millimetres with cameras in metres, or a swapped axis, puts it there)"
+            f"{file}: scene.{name} {list(point)} is inside the object{others} (centre "
+            f"{np.round(center, 3).tolist()}, radius {radius:.3g}): {what} (check the units "
+            "and the axes: a mesh in millimetres with cameras and lights in metres, or a "
+            "swapped axis, puts it there)"
         )
     return scene
 
