@@ -234,7 +234,7 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
     if integer:
         saturated = np.any(pixels >= 1.0, axis=-1)
     else:  # half floats clamp at HALF_MAX: a pixel there is clipped, not measured
-        saturated = np.any(pixels >= HALF_MAX, axis=-1)
+        saturated = np.any((pixels >= HALF_MAX) & np.isfinite(pixels), axis=-1)  # inf: NaN/Inf
         if saturated.any():
             warnings.append(
                 f"{path}: {int(saturated.sum())} pixels at the half-float maximum {HALF_MAX:g} "

@@ -424,9 +424,10 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
         log.warning(message)
         capture.warnings.append(message)  # in the summary and the report too
     refusal = forward_mode_refusal(problem)
+    # the default schedule's phases are named as such, with how to give others
+    given = "" if "phases" in cfg.settings.model_fields_set else " (the default schedule)"
     for k, phase in enumerate(cfg.phases):  # fail before any work, naming the phase
         if refusal and phase.solver in ("gn", "lm"):
-            given = "" if "phases" in cfg.settings.model_fields_set else " (the default schedule)"
             raise InputError(
                 f"{cfg.path}: fit.phases[{k}].solver = {phase.solver!r}{given}: {refusal}, and "
                 "it renders a forward-mode Jacobian; give [[fit.phases]] of adam only (e.g. "
@@ -435,13 +436,19 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
         try:
             views = problem.at(phase.downscale).views
         except CaptureError as err:
-            raise CaptureError(f"{cfg.path}: fit.phases[{k}].downscale: {err}") from None
+            raise CaptureError(f"{cfg.path}: fit.phases[{k}].downscale{given}: {err}") from None
         h, w = min(v.image.shape[0] for v in views), min(v.image.shape[1] for v in views)
         if min(h, w) < MIN_PIXELS:
-            raise InputError(
-                f"{cfg.path}: fit.phases[{k}].downscale = {phase.downscale} (with fit.downscale "
-                f"= {cfg.downscale}) leaves a {w}x{h} view: at least {MIN_PIXELS} pixels a side; "
+            fix = (
                 "give a smaller factor"
+                if not given
+                else 'give [[fit.phases]] of your own with downscale = 1 (README, "Fitting"), '
+                "or larger views"
+            )
+            raise InputError(
+                f"{cfg.path}: fit.phases[{k}].downscale = {phase.downscale}{given} (with "
+                f"fit.downscale = {cfg.downscale}) leaves a {w}x{h} view: at least {MIN_PIXELS} "
+                f"pixels a side; {fix}"
             )
         if hold := getattr(phase.options, "hold", ()):
             try:

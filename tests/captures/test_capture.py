@@ -394,6 +394,20 @@ def test_nan_pixels_get_zero_weight_and_a_warning(tmp_path, caplog):
     assert "1 NaN/Inf pixels get weight 0" in caplog.text
 
 
+def test_an_inf_pixel_is_counted_once_as_not_finite(tmp_path, caplog):
+    """+inf in a float32 EXR is not finite, not a half float at its maximum: one warning (it was
+    counted in both)."""
+    path = make_capture(tmp_path)
+    image = np.full((6, 8, 3), 0.25, np.float32)
+    image[1, 1], image[2, 2] = np.inf, 65504.0
+    write_image(tmp_path / "v0.exr", image)
+    with caplog.at_level(logging.WARNING):
+        capture = load_capture(path)
+    assert capture.views[0].weight[1, 1] == 0
+    assert "1 NaN/Inf pixels get weight 0" in caplog.text
+    assert "1 pixels at the half-float maximum" in caplog.text
+
+
 def test_8bit_declared_linear_warns(tmp_path):
     write_image(tmp_path / "v.jpg", np.full((6, 8, 3), 0.25, np.float32))
     capture = load_capture(make_capture(tmp_path, views=[{"image": "v.jpg", "camera": CAMERA}]))

@@ -735,3 +735,16 @@ def test_an_off_centre_principal_point_widens_what_a_view_sees():
         assert not sees(camera, center, radius)
         shifted = dataclasses.replace(camera, principal_point=(75.0, 50.0))
         assert sees(shifted, center, radius)
+
+
+def test_a_camera_inside_the_bounding_sphere_is_not_refused_as_blind():
+    """A long shelf under a small object (or a stray vertex far off) moves the bounding sphere's
+    centre behind a camera that looks at the object: it sees it (it was refused as "does not see
+    the object"); a camera outside the sphere looking away is still refused."""
+    from captures.scene import Camera, sees
+
+    center, radius = np.array([14.5, 0.0, 0.0]), 15.5  # a cube at 0 and a 31-m board
+    camera = Camera((0.0, -3.0, 0.0), (-5.0, 0.0, 0.0), (0.0, 0.0, 1.0), 40.0, 64, 48)
+    assert sees(camera, center, radius)
+    away = Camera((0.0, -20.0, 0.0), (0.0, -40.0, 0.0), (0.0, 0.0, 1.0), 40.0, 64, 48)
+    assert not sees(away, center, radius)

@@ -543,3 +543,19 @@ def test_the_printed_resume_command_keeps_holdout_and_quotes_paths():
         "layerfit", "fit", "my fits/cup.toml", "--out", "out/a b", "--resume",
         "--holdout", "1", "--variant", "llvm_ad_rgb",
     ]  # fmt: skip
+
+
+def test_a_view_too_small_for_the_default_schedule_names_it_and_the_way_out(tmp_path):
+    """A 7x5 view at the default schedule's half resolution: the error says the phase is the
+    default schedule's (the config has no [[fit.phases]]) and how to give one of full resolution
+    (it said only "give a smaller factor", of phases the user never wrote)."""
+    from fit.commands import fit as fit_command
+    from fit.config import load_fit_config
+
+    small_capture(tmp_path / "cap", spp=4, size=(7, 5))
+    (tmp_path / "fit.toml").write_text(CONFIG)
+    with pytest.raises(fit_command.InputError) as caught:
+        fit_command.prepare(load_fit_config(tmp_path / "fit.toml"))
+    message = str(caught.value)
+    assert "fit.phases[0].downscale = 2 (the default schedule)" in message
+    assert "[[fit.phases]] of your own with downscale = 1" in message
