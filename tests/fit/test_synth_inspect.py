@@ -172,3 +172,33 @@ def test_synth_keeps_a_scene_file_named_like_a_view(tmp_path):
     assert capture.scene.environment.path.name == "scene-view_00.exr"
     np.testing.assert_array_equal(read_image(capture.scene.environment.path), sky)
     assert read_image(out / "view_00.exr").shape == (30, 40, 3)
+
+
+def test_inspect_warns_of_a_mask_the_silhouette_does_not_match(tmp_path):
+    """An inverted object mask: `inspect` says so in a warning, as `fit` does (it showed only an
+    IoU of 0.04 in its table)."""
+    import tomllib
+
+    import tomli_w
+
+    from captures.images import write_image
+    from fit.commands.synth import synthesize
+    from fit.config import load_render_config
+
+    root = Path(__file__).resolve().parents[2]
+    cfg = load_render_config(root / "configs" / "glazed-sphere.toml")
+    camera = dataclasses.replace(cfg.scene.cameras[0], width=32, height=24)
+    scene = dataclasses.replace(cfg.scene, cameras=(camera,))
+    synthesize(scene, cfg.material, tmp_path / "cap", spp=4, seed=1)
+    manifest = tmp_path / "cap" / "capture.toml"
+    doc = tomllib.loads(manifest.read_text())
+    coverage = silhouettes(load_capture(manifest))[0]
+    for inverted, name in ((False, "right.png"), (True, "inverted.png")):
+        mask = (coverage > 0.5) != inverted
+        write_image(tmp_path / "cap" / name, np.repeat(mask[..., None], 3, 2).astype(np.float32))
+        doc["views"][0]["mask"] = name
+        manifest.write_text(tomli_w.dumps(doc))
+        out = run_cli("inspect", tmp_path / "cap", "--sheet", tmp_path / f"{name}.sheet.png")
+        assert out.returncode == 0, out.stderr
+        warned = "overlaps the object mask of 1 of 1 views poorly" in out.stderr.replace("\n", "")
+        assert warned == inverted, out.stderr
