@@ -238,7 +238,7 @@ def sees(camera: Camera, center: np.ndarray, radius: float) -> bool:
     origin, forward = np.asarray(camera.origin, float), np.subtract(camera.target, camera.origin)
     forward = forward / np.linalg.norm(forward)
     offset = center - origin
-    if camera.kind != "orthographic" and np.linalg.norm(offset) <= radius:
+    if np.linalg.norm(offset) <= radius:
         return True  # inside the bounding sphere (a long shelf, a stray vertex): not decided here
     depth = offset @ forward
     lateral = np.linalg.norm(offset - depth * forward)

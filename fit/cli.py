@@ -605,19 +605,11 @@ def inspect(
                 f"{row['iou']:.3f}" if "iou" in row else "-",
             )
         console.print(table)
-        from .render.scene import MIN_SILHOUETTE_IOU
+        from .render.scene import overlap_warning
 
-        low = [row for row in rows if row.get("iou", 1.0) < MIN_SILHOUETTE_IOU]
-        if low:  # what `fit` warns of, here too (the column alone went unremarked)
-            shown = ", ".join(f"{row['view']} {row['iou']:.2f}" for row in low)
-            _say(
-                "warning:",
-                "yellow",
-                f"{capture}: the rendered silhouette overlaps the object mask of {len(low)} of "
-                f"{len(rows)} views poorly (IoU {shown}; a match is above 0.9): check the "
-                "mesh's axes (Y-up against Z-up) and units, the cameras' poses and the masks "
-                "(an inverted mask); the contact sheet overlays both",
-            )
+        overlaps = {row["view"]: row["iou"] for row in rows if "iou" in row}
+        if low := overlap_warning(str(capture), overlaps, len(rows)):  # as `fit` warns
+            _say("warning:", "yellow", low)
         out = contact_sheet(cap, coverage, sheet, SHEET_VIEWS)
     shown = "" if len(cap.views) <= SHEET_VIEWS else f" (the first {SHEET_VIEWS} views)"
     console.print(f"wrote {out}{shown}", markup=False, highlight=False)

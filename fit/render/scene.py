@@ -251,15 +251,8 @@ def view_warnings(
     for (name, camera), given in zip(views, masks or [None] * len(views), strict=True):
         if given is not None and traced[camera][0]:
             overlaps[name] = _grid_iou(grids[camera][0], *given)
-    low = {name: v for name, v in overlaps.items() if v < MIN_SILHOUETTE_IOU}
-    if low:
-        shown = ", ".join(f"{name} {v:.2f}" for name, v in low.items())
-        out.append(
-            f"{where}: the object's silhouette overlaps the object mask of {len(low)} of "
-            f"{len(views)} views poorly (IoU {shown}; a match is above 0.9): check the mesh's "
-            "axes (Y-up against Z-up) and units, and the cameras' poses (`layerfit inspect` "
-            "shows both); the fit would explain the difference with the material"
-        )
+    if low := overlap_warning(where, overlaps, len(views)):
+        out.append(low)
     empty = [name for name, camera in views if traced[camera][0] == 0]
     if empty:
         out.append(
@@ -276,6 +269,22 @@ def view_warnings(
 #: union at pixel centres) is warned: aligned, the shared peers' views score 0.94-0.97 and
 #: DiLiGenT's ball 0.99; a Y-up mesh in a Z-up scene 0.37-0.69.
 MIN_SILHOUETTE_IOU = 0.8
+
+
+def overlap_warning(where: str, overlaps: dict[str, float], n_views: int) -> str | None:
+    """The line for views whose object mask the object's silhouette overlaps under
+    `MIN_SILHOUETTE_IOU` (`overlaps`: IoU per view name), or None."""
+    low = {name: v for name, v in overlaps.items() if v < MIN_SILHOUETTE_IOU}
+    if not low:
+        return None
+    shown = ", ".join(f"{name} {v:.2f}" for name, v in low.items())
+    return (
+        f"{where}: the object's silhouette overlaps the object mask of {len(low)} of {n_views} "
+        f"views poorly (IoU {shown}; a match is above 0.9): check the mesh's axes (Y-up "
+        "against Z-up) and units, the cameras' poses and the masks (an inverted one); "
+        "`layerfit inspect` overlays them. The fit would explain the difference with the "
+        "material"
+    )
 
 
 def _grid_iou(hit: np.ndarray, mask: np.ndarray, coverage: float) -> float:

@@ -645,21 +645,27 @@ def test_a_camera_inside_the_object_is_refused(tmp_path, geometry, origin, refus
 
 
 @pytest.mark.parametrize(
-    "light, refused",
+    "geometry, light, refused",
     [
-        ({"center": [0.2, 0.1, 0.0], "target": [0, 3, 0], "size": [0.1, 0.1]}, "center"),
-        ({"type": "point", "position": [0.0, 0.0, 0.5]}, "position"),
-        ({"type": "point", "position": [0.0, 0.0, 1.5]}, None),
-        ({"type": "directional", "direction": [0, 0, -1]}, None),
+        ("sphere", {"center": [0.2, 0.1, 0], "target": [0, 3, 0], "size": [0.1, 0.1]}, "center"),
+        ("sphere", {"type": "point", "position": [0.0, 0.0, 0.5]}, "position"),
+        ("sphere", {"type": "point", "position": [0.0, 0.0, 1.5]}, None),
+        ("sphere", {"type": "directional", "direction": [0, 0, -1]}, None),
+        ("cube.obj", {"type": "point", "position": [0.5, -0.5, 0.2]}, "position"),
+        ("cube.obj", {"type": "point", "position": [0.0, -1.2, 0.0]}, None),
+        ("cup", {"type": "point", "position": [0.0, -0.0355, 0.05]}, "position"),  # its wall
+        ("cup", {"type": "point", "position": [0.0, 0.0, 0.05]}, None),  # its hollow
     ],
 )
-def test_a_light_inside_the_object_is_refused(tmp_path, light, refused):
+def test_a_light_inside_the_object_is_refused(tmp_path, geometry, light, refused):
     """A light inside the object lights only its inside (the object renders black): refused by
-    its field's name, as a camera there is; outside it, kept."""
+    its field's name, as a camera there is; outside it (in a cup's hollow too), kept."""
+    if geometry == "cube.obj":
+        cube_obj(tmp_path / "cube.obj", flip=(0, 2))  # wound unevenly: the count decides
     light = {"power": 10.0, "temperature": 3200, **light}
     if light.get("type") == "directional":
         light = {k: v for k, v in light.items() if k != "power"} | {"irradiance": 1.0}
-    table = scene_table(lights=[scene_table()["lights"][0], light])
+    table = scene_table(geometry=geometry, lights=[scene_table()["lights"][0], light])
     if refused is None:
         parse_scene(table, tmp_path / "s.toml")
         return
@@ -748,3 +754,18 @@ def test_a_camera_inside_the_bounding_sphere_is_not_refused_as_blind():
     assert sees(camera, center, radius)
     away = Camera((0.0, -20.0, 0.0), (0.0, -40.0, 0.0), (0.0, 0.0, 1.0), 40.0, 64, 48)
     assert not sees(away, center, radius)
+
+
+def test_closed_meshes_are_told_from_open_ones_whichever_way_they_are_wound():
+    """Every edge (corners welded by position) shared by two triangles: the cube, wound either
+    way or with faces apart (a triangle soup); without a face it is open."""
+    from captures.geometry import closed
+
+    corners = np.array([(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+    triangles = np.array([(f[0], f[i], f[i + 1]) for f in CUBE_FACES for i in (1, 2)]) - 1
+    flipped = triangles.copy()
+    flipped[:4] = flipped[:4, ::-1]
+    soup = corners[triangles].reshape(-1, 3)
+    assert closed(corners, triangles) and closed(corners, flipped)
+    assert closed(soup, np.arange(len(soup)).reshape(-1, 3))
+    assert not closed(corners, triangles[2:]) and not closed(corners, triangles[:0])
