@@ -47,6 +47,9 @@ def atomic_path(path: str | Path, folder: bool = False, replace: bool = False) -
         if folder and path.exists():
             replace_folder(path, tmp)
         else:
+            if not folder:  # its bytes on disk before the name points at them: a power cut
+                with open(tmp, "rb") as written:  # after the rename left an empty file on
+                    os.fsync(written.fileno())  # filesystems that delay allocation
             os.replace(tmp, path)
     except BaseException:
         if tmp.is_dir():

@@ -602,6 +602,28 @@ def test_an_output_folder_names_only_whole_files_as_its_own(tmp_path):
     assert found == ["a.exr", "mask.exr", "meshes", "notes.txt"]
 
 
+def test_an_atomic_file_is_on_disk_before_its_name_points_at_it(tmp_path, monkeypatch):
+    """A file written through `atomic_path` is synced before the rename (a power cut after the
+    rename left an empty file on filesystems that delay allocation); an error leaves neither the
+    file nor its temporary."""
+    import os
+
+    from captures.files import write_text
+
+    order = []
+    real_fsync, real_replace = os.fsync, os.replace
+    monkeypatch.setattr(os, "fsync", lambda fd: (order.append("fsync"), real_fsync(fd))[1])
+    monkeypatch.setattr(
+        os, "replace", lambda a, b: (order.append("replace"), real_replace(a, b))[1]
+    )
+    write_text(tmp_path / "summary.json", "{}")
+    assert order == ["fsync", "replace"] and (tmp_path / "summary.json").read_text() == "{}"
+    monkeypatch.setattr(os, "fsync", lambda fd: (_ for _ in ()).throw(OSError(5, "I/O error")))
+    with pytest.raises(OSError, match="I/O error"):
+        write_text(tmp_path / "preset.toml", "x")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["summary.json"]
+
+
 def test_a_toml_saved_with_a_byte_order_mark_reads(tmp_path):
     """Windows editors save UTF-8 with an invisible byte-order mark, which TOML rejects at line 1,
     column 1: it is read as the file's text."""
