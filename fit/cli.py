@@ -560,6 +560,8 @@ def inspect(
     from captures.capture import MIN_SIDE
     from captures.files import check_output
 
+    from .output.figures import drawn_by_layerfit
+
     named = capture.resolve()  # `.` is named by its folder (the sheet was "inspect-.png")
     if named.name in ("scene.json", "capture.toml"):
         named = named.parent
@@ -581,7 +583,10 @@ def inspect(
                 f"{what}: is inside the capture folder {folder}; write the sheet "
                 "elsewhere (a capture's files are never overwritten)"
             )
-        check_output(sheet, "--sheet", force=force, inputs=[capture], suffixes=(".png",))
+        # run again, inspect redraws its own default sheet (tagged by layerfit); a sheet named
+        # with --sheet, or a file layerfit did not draw, only with --force
+        redraw = force or (not given and drawn_by_layerfit(sheet))
+        check_output(sheet, "--sheet", force=redraw, inputs=[capture], suffixes=(".png",))
     except InputError as err:
         raise _fail(err, 2) from None
     _start(variant)
@@ -731,6 +736,8 @@ def fit(
             bar.stop()
             forget_out()
             raise
+    from .material.free import bound_note
+
     solvers = "+".join(p.solver for p in cfg.phases)
     table = RichTable(title=escape(f"{config}: {solvers}, {summary['wall_time_s']:.1f} s"))
     table.add_column("parameter", no_wrap=True)
@@ -759,6 +766,8 @@ def fit(
     results.print(table)
     if summary["poorly_determined"]:
         _say("poorly determined:", "yellow", ", ".join(summary["poorly_determined"]))
+    for entry in summary["at_bounds"]:
+        _say("at a bound:", "yellow", bound_note(entry, len(summary.get("starts") or ()) or 1))
     if summary["std"] is None:
         results.print("no uncertainty: too many free components for a Jacobian (textures)")
     for report in summary["outcomes"]:

@@ -47,6 +47,7 @@ from ..config import FitConfig, config_identity
 from ..errors import OutputError
 from ..material import (
     Free,
+    at_bounds,
     check_uvs,
     parse_key,
     provenance,
@@ -655,7 +656,7 @@ def _write(
         if f.shape
     }
     panels = _panels(cfg, capture, held, problem, result)
-    summary = _summary(cfg, capture, held, start, result, wall, panels, interrupted)
+    summary = _summary(cfg, capture, held, start, result, wall, panels, interrupted, free)
     if starts is not None:
         summary["starts"] = starts
     for key, texels in textures.items():
@@ -767,7 +768,7 @@ def _labels(values: dict) -> list[str]:
     return out
 
 
-def _summary(cfg, capture, held, start, result, wall, panels, interrupted) -> dict:
+def _summary(cfg, capture, held, start, result, wall, panels, interrupted, free) -> dict:
     truth = capture.truth
     errors, z = {}, {}
     for key, value in result.values.items():
@@ -801,6 +802,8 @@ def _summary(cfg, capture, held, start, result, wall, panels, interrupted) -> di
         "correlation": None if result.correlation is None else result.correlation.tolist(),
         "correlation_labels": _labels(result.values),
         "poorly_determined": result.poorly_determined,
+        # values that ended at a bound: the truth there, past it, or a local minimum
+        "at_bounds": at_bounds(free, result.values),
         "truth": {k: truth[k] for k in result.values if k in truth},
         "error": errors,
         "error_over_std": z,

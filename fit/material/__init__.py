@@ -2,7 +2,16 @@
 grammar, free parameters and the native preset. No Mitsuba import at module level."""
 
 from .build import Material, Param, build_material, check_uvs, material_dict
-from .free import Free, as_dict, resolve, start_values, to_physical, to_unconstrained
+from .free import (
+    Free,
+    as_dict,
+    at_bounds,
+    bound_note,
+    resolve,
+    start_values,
+    to_physical,
+    to_unconstrained,
+)
 from .keys import Key, key, parse_key
 from .preset import (
     PRESET_SCHEMA,
@@ -22,6 +31,8 @@ __all__ = [
     "Param",
     "Preset",
     "as_dict",
+    "at_bounds",
+    "bound_note",
     "build_material",
     "check_uvs",
     "key",

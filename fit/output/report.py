@@ -13,6 +13,7 @@ import numpy as np
 from captures.files import atomic_path, write_text
 from captures.images import srgb_encode
 
+from ..material.free import bound_note
 from .figures import pyplot, save_figure
 
 DIFF_RANGE = 0.2  # the difference map's colour range, in units of the view's exposure
@@ -263,6 +264,11 @@ def write_report(
         page.append(f"<p class='meta'>model: {_e(model)}</p>")
     head = ["key", "start", "fitted", "\u00b1 std", "truth", "error", "error / std"]
     page.append(_table(head, _parameter_rows(summary)))
+    bounds = summary.get("at_bounds") or []
+    if bounds:
+        starts = len(summary.get("starts") or ()) or 1
+        items = "".join(f"<li>{_e(bound_note(b, starts))}</li>" for b in bounds)
+        page.append(f"<ul class='notes'>{items}</ul>")
 
     page.append("<h2>Phase outcomes</h2>")
     head = ["solver", "outcome", "steps", "rejected", "seconds", "message"]

@@ -46,6 +46,10 @@ RETRY_SEED_OFFSET = 0x7E7A1
 #: A coordinate whose share of an undetermined direction (its unit eigenvector's component)
 #: exceeds this is undetermined; below it, the direction is another parameters' trade.
 UNDETERMINED_LOADING = 0.1
+#: An eigenvalue of the curvature scaled to a unit diagonal above this is determined: its
+#: Jacobians are float32 (a relative precision of 6e-8), so a scaled eigenvalue under about
+#: 1e-6 is rounding, not information.
+DETERMINED_FLOOR = 1e-6
 
 
 def cross_product(a: np.ndarray, b: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
@@ -57,23 +61,34 @@ def cross_product(a: np.ndarray, b: np.ndarray, weight: np.ndarray | None = None
 
 
 def inverse_determined(h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The inverse of a symmetric matrix on the span of its clearly positive eigenvalues (above
-    1e-9 of the largest), and which coordinates load on a direction that is not by more than
-    `UNDETERMINED_LOADING` (undetermined). A coordinate whose row is not finite is undetermined
-    (its row and column of the inverse zero), and all are where the eigendecomposition fails:
-    an uncertainty never loses the fit it reports on."""
+    """The inverse of a symmetric matrix on the span of its clearly positive eigenvalues, and
+    which coordinates load on a direction that is not by more than `UNDETERMINED_LOADING`
+    (undetermined). Decided on the matrix scaled to a unit diagonal (its correlation form), so
+    that a coordinate's units do not decide it: an eigenvalue above `DETERMINED_FLOOR` there is
+    determined. A coordinate whose own curvature is not positive (noise larger than its
+    signal) or whose row is not finite is undetermined (its row and column of the inverse
+    zero), and all are where the eigendecomposition fails: an uncertainty never loses the fit
+    it reports on.
+
+    Unscaled, an eigenvalue under 1e-9 of the largest was cut: ior at 1.011 of its [1.01, 3]
+    (its sigmoid's slope 0.001) had a clean curvature of 4.5e-11 against the pigment's 0.05,
+    and came out undetermined though its scaled eigenvalues were all above 0.64."""
     h = np.asarray(h, np.float64)
     finite = np.all(np.isfinite(h), axis=1)
     inverse, undetermined = np.zeros_like(h), ~finite
     block = np.ix_(finite, finite)
+    diagonal = np.diag(h)[finite]
+    positive = diagonal > 0
+    scale = np.where(positive, 1.0 / np.sqrt(np.where(positive, diagonal, 1.0)), 0.0)
     try:
-        values, vectors = np.linalg.eigh(h[block])
+        values, vectors = np.linalg.eigh(h[block] * np.outer(scale, scale))
     except np.linalg.LinAlgError:
         return inverse, np.ones(len(h), bool)
-    floor = 1e-9 * max(float(np.max(np.abs(values), initial=0.0)), 1e-300)
-    good = values > floor
-    inverse[block] = (vectors[:, good] / values[good]) @ vectors[:, good].T
-    undetermined[finite] = np.abs(vectors[:, ~good]).max(axis=1, initial=0.0) > UNDETERMINED_LOADING
+    good = values > DETERMINED_FLOOR
+    scaled_inverse = (vectors[:, good] / values[good]) @ vectors[:, good].T
+    inverse[block] = np.outer(scale, scale) * scaled_inverse
+    loading = np.abs(vectors[:, ~good]).max(axis=1, initial=0.0)
+    undetermined[finite] = ~positive | (loading > UNDETERMINED_LOADING)
     return inverse, undetermined
 
 
@@ -177,7 +192,8 @@ def uncertainty(
     """Gauss-Newton covariance at the solver's vector `u` in its sandwich form,
     `H^-1 (sum_p J_p^T r_p r_p^T J_p) H^-1 * N / (N - P)` (p: a pixel's channels; `_meat`) with
     `H = J^T J` (J, r: the weighted Jacobian and residuals), mapped to physical units through
-    the transforms' derivatives.
+    the transforms' derivatives (so the same as the covariance in physical units: a value near
+    its bound, where its sigmoid is flat, keeps the sd its images give it).
 
     The plain form `s^2 (J^T J)^-1` assumes every pixel equally noisy; Monte Carlo noise gathers
     in highlights, where roughness and ior are decided (measured on the default job's sphere:

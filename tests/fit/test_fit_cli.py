@@ -72,7 +72,7 @@ def test_fit_command_writes_a_run_folder(tmp_path):
     views = {v["name"]: v for v in summary["views"]}
     assert views["view_01"]["held_out"] and not views["view_00"]["held_out"]
     assert all(0 < v["rmse"] < 0.5 for v in views.values())  # 64-spp renders: noisy highlights
-    assert len(summary["correlation_labels"]) == 3
+    assert len(summary["correlation_labels"]) == 3 and summary["at_bounds"] == []
     preset = load_preset(run / "preset.toml")
     np.testing.assert_allclose(
         preset.material.values()["glaze.pigment"], summary["values"]["glaze.pigment"]
@@ -85,6 +85,30 @@ def test_fit_command_writes_a_run_folder(tmp_path):
     # the folder is never overwritten by accident: refused before any work
     again = run_cli("fit", tmp_path / "fit.toml", "--out", run, timeout=300)
     assert again.returncode == 2 and "--force" in again.stderr
+
+
+def test_a_value_that_ends_at_its_bound_is_named_with_the_way_out(tmp_path):
+    """ior started at its lower bound and barely moved (two tiny Adam steps): the results, the
+    summary and the report say it ended there, what that can mean (a local minimum among
+    them: an audit's clipped capture ended at ior 1.011 with the pigment 29 sd off) and that
+    more starts tell it apart; its sd is not the slope's near-zero one."""
+    small_capture(tmp_path / "cap")
+    (tmp_path / "fit.toml").write_text(
+        CONFIG.replace("ior = 1.52", "ior = 1.01").replace(
+            'free = ["glaze.pigment"]', 'free = ["glaze.pigment", "glaze.ior"]'
+        )
+        + '[[fit.phases]]\nsolver = "adam"\nsteps = 2\nspp = 4\nlr = 0.001\n'
+    )
+    run = tmp_path / "run"
+    out = run_cli("fit", tmp_path / "fit.toml", "--out", run)
+    assert out.returncode == 0, out.stderr
+    said = " ".join(out.stderr.split())  # notes on stderr, the results' table on stdout
+    assert "at a bound: glaze.ior ended at its lower bound (1.012; range 1.01 to 3)" in said
+    assert "local minimum" in said and "--starts 4" in said
+    summary = json.loads((run / "summary.json").read_text())
+    assert [(e["parameter"], e["bound"]) for e in summary["at_bounds"]] == [("glaze.ior", "lower")]
+    assert summary["std"]["glaze.ior"] is None or summary["std"]["glaze.ior"] > 0.01
+    assert "glaze.ior ended at its lower bound" in (run / "report.html").read_text()
 
 
 def test_fit_with_exposure_gains_and_a_held_out_view(tmp_path):

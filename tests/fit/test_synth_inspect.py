@@ -202,3 +202,26 @@ def test_inspect_warns_of_a_mask_the_silhouette_does_not_match(tmp_path):
         assert out.returncode == 0, out.stderr
         warned = "overlaps the object mask of 1 of 1 views poorly" in out.stderr.replace("\n", "")
         assert warned == inverted, out.stderr
+
+
+def test_inspect_run_again_redraws_its_default_sheet_only(tmp_path, monkeypatch):
+    """`inspect` run twice replaces its own default sheet (out/inspect-<name>.png, tagged by
+    layerfit; it was refused without --force); a sheet named with --sheet, or a file there that
+    layerfit did not draw, is still refused."""
+    from typer.testing import CliRunner
+
+    from fit.cli import app
+
+    cfg, scene = small_sphere()
+    synthesize(scene, cfg.material, tmp_path / "cap", spp=4)
+    monkeypatch.chdir(tmp_path)
+    runner, sheet = CliRunner(), tmp_path / "out" / "inspect-cap.png"
+    for _ in range(2):
+        result = runner.invoke(app, ["inspect", "cap", "--no-silhouette"])
+        assert result.exit_code == 0, result.output
+        assert sheet.stat().st_size > 5_000
+    result = runner.invoke(app, ["inspect", "cap", "--no-silhouette", "--sheet", str(sheet)])
+    assert result.exit_code == 2 and "--force" in result.output
+    sheet.write_bytes(b"a user's file")
+    result = runner.invoke(app, ["inspect", "cap", "--no-silhouette"])
+    assert result.exit_code == 2 and sheet.read_bytes() == b"a user's file"
