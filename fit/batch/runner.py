@@ -42,6 +42,7 @@ COLUMNS = (
     "seed",
     "loss",
     "max_abs_error",
+    "warnings",
     "wall_time_s",
     "max_rss_mb",
     "host",
@@ -157,12 +158,19 @@ def _check_run_folder(out: Path) -> bool:
 
 
 def summary_entry(summary: dict) -> dict:
-    """What the index keeps of a fit's summary: loss, largest error vs the truth, wall time and
-    the fitted values of at most 3 components (with the best start's spread when multi-start)."""
+    """What the index keeps of a fit's summary: loss, largest error vs the truth, the fit's
+    warnings (parameters poorly determined or ended at a bound: a fit to look at before its
+    numbers), wall time and the fitted values of at most 3 components (with the best start's
+    spread when multi-start)."""
     errors = [abs(e) for v in summary.get("error", {}).values() for e in np.ravel(v)]
+    warnings = [f"poorly determined: {key}" for key in summary.get("poorly_determined") or ()]
+    warnings += [
+        f"at its {b['bound']} bound: {b['parameter']}" for b in summary.get("at_bounds") or ()
+    ]
     entry = {
         "loss": summary.get("loss"),
         "max_abs_error": max(errors) if errors else None,
+        "warnings": "; ".join(warnings),
         "wall_time_s": summary.get("wall_time_s"),
         "values": {k: v for k, v in summary.get("values", {}).items() if np.size(v) <= 3},
     }

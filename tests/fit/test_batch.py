@@ -473,3 +473,22 @@ def test_the_index_names_a_configs_own_seed():
     assert entry["seed"] == 7
     assert _csv([entry]).splitlines()[1].split(",")[4] == "7"
     assert "seed" not in summary_entry({**summary, "seed": None})
+
+
+def test_the_index_names_a_fits_warnings():
+    """A fit with a poorly determined parameter or a value at its bound says so in the index's
+    warnings column (CSV and HTML), so a batch's suspicious fits show before their numbers; a
+    clean fit's cell is empty."""
+    from fit.batch.runner import COLUMNS, _csv, summary_entry
+
+    summary = {
+        "values": {"glaze.ior": 1.011},
+        "error": {},
+        "poorly_determined": ["glaze.ior"],
+        "at_bounds": [{"parameter": "glaze.ior", "bound": "lower", "value": 1.011}],
+    }
+    entry = {"name": "fit", "status": "done"} | summary_entry(summary)
+    said = "poorly determined: glaze.ior; at its lower bound: glaze.ior"
+    assert entry["warnings"] == said
+    assert said in _csv([entry]) and "warnings" in COLUMNS  # the HTML's columns are COLUMNS
+    assert summary_entry({"values": {}, "error": {}})["warnings"] == ""
