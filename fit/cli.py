@@ -57,8 +57,13 @@ BENCH_MAX_SPP = 2**14
 IMAGE_SUFFIXES = (".png", ".exr", ".tif", ".tiff", ".jpg", ".jpeg")
 
 
+#: Whether this run has said it was interrupted (`_run` says so where nothing did).
+_said = {"interrupted": False}
+
+
 def _say(label: str, style: str, text: str) -> None:
     """One unwrapped line `label text`, the text plain (brackets in it are shown, not markup)."""
+    _said["interrupted"] |= "interrupted" in f"{label} {text}"
     console.print(Text.assemble((label, style), " ", str(text)), highlight=False, soft_wrap=True)
 
 
@@ -151,16 +156,23 @@ def _scene_and_material(config: Path, scene: Path | None):
 
 
 def _start(variant: str | None) -> None:
-    """Select the variant and register the plugins, or stop with one line."""
-    try:
-        select_variant(variant)
-    except VariantError as err:
-        raise _fail(err, 2) from None
-    except BackendError as err:
-        raise _fail(err, 1) from None
-    import materials
+    """Select the variant and register the plugins, or stop with one line. A Ctrl-C meanwhile
+    waits until they are done (`entry.deferred`), and one a library swallowed earlier is
+    honoured here."""
+    from . import entry
 
-    materials.register()
+    with entry.deferred():
+        try:
+            select_variant(variant)
+        except VariantError as err:
+            raise _fail(err, 2) from None
+        except BackendError as err:
+            raise _fail(err, 1) from None
+        import materials
+
+        materials.register()
+    if entry.asked():
+        raise KeyboardInterrupt
 
 
 def _progress() -> Progress:
@@ -680,12 +692,19 @@ def fit(
     except typer.Exit:
         forget_out()
         raise
+    except KeyboardInterrupt:
+        forget_out()
+        raise _fail("interrupted before the fit began: nothing written", 130) from None
+    from . import entry
     from .batch import Cancelled
     from .commands.fit import Interrupted, check_resume, prepare, run_fit
     from .errors import OutputError
 
     try:
-        prepared = prepare(cfg, holdout)
+        with entry.deferred():  # JAX and XLA start here: a Ctrl-C waits until they have
+            prepared = prepare(cfg, holdout)
+        if entry.asked():
+            raise KeyboardInterrupt
         if resume:  # before any progress bar: a checkpoint of another fit is one line
             check_resume(prepared, cfg, out)
     except InputError as err:
@@ -766,8 +785,8 @@ def fit(
     results.print(table)
     if summary["poorly_determined"]:
         _say("poorly determined:", "yellow", ", ".join(summary["poorly_determined"]))
-    for entry in summary["at_bounds"]:
-        _say("at a bound:", "yellow", bound_note(entry, len(summary.get("starts") or ()) or 1))
+    for bound in summary["at_bounds"]:
+        _say("at a bound:", "yellow", bound_note(bound, len(summary.get("starts") or ()) or 1))
     if summary["std"] is None:
         results.print("no uncertainty: too many free components for a Jacobian (textures)")
     for report in summary["outcomes"]:
@@ -1007,6 +1026,17 @@ def _command():
 
 def _run(argv: list[str] | None) -> int:
     """Run the app; the exit status, every failure printed as one line."""
+    _said["interrupted"] = False
+    code = _run_app(argv)
+    if code == 130 and not _said["interrupted"]:  # typer returns 130 for a KeyboardInterrupt
+        _say("interrupted:", "yellow", "stopped by Ctrl-C or SIGTERM")  # that left a command
+    return code
+
+
+def _run_app(argv: list[str] | None) -> int:
+    """`_run`'s work: the app's exit status, a failure printed as one line."""
+    from . import entry
+
     try:
         code = _command().main(args=argv, prog_name="layerfit", standalone_mode=False)
     except typer.TyperException as err:  # usage: an unknown option, a value out of range
@@ -1029,6 +1059,8 @@ def _run(argv: list[str] | None) -> int:
         _say("error:", "red", str(err))
         code = 1 if isinstance(err, OutputError) else 2
     except Exception as err:
+        if entry.asked():  # a Ctrl-C inside a library's import or callback, surfaced as another
+            return 130  # error (drjit's import: a NameError)
         if os.environ.get("LAYERFIT_DEBUG"):
             raise
         first = (str(err).strip().splitlines() or [""])[0][:300]

@@ -634,6 +634,10 @@ def _on_first_stop(note: Callable[[], None]):
 
     for s in signals:
         signal.signal(s, first)
+    from .. import entry
+
+    if entry.asked():  # a Ctrl-C since the command started that a library's callback swallowed
+        first(signal.SIGINT, None)
     try:
         yield
     finally:

@@ -192,6 +192,26 @@ def _wait_for_step(checkpoint: Path, step: int, process: subprocess.Popen, timeo
     raise AssertionError("no checkpoint appeared")
 
 
+@pytest.mark.parametrize("delay", [0.2, 1.0, 1.8, 2.6])
+def test_ctrl_c_while_starting_is_one_line_and_exit_130(tmp_path, delay):
+    """A Ctrl-C in a fit's first seconds (imports, Mitsuba and JAX starting) stops it: exit 130,
+    one `interrupted` line, no traceback, no run folder or a resumable one. It printed an
+    import's traceback (at 0.5 s), was swallowed by JAX's gc callback while the fit ran to its
+    end (1.2-1.5 s), became "internal error (NameError)" inside Dr.Jit's import (2.5 s), or
+    exited 130 silently; once a Dr.Jit import cut half-way aborted the interpreter."""
+    small_capture(tmp_path / "cap")
+    (tmp_path / "fit.toml").write_text(RESUMABLE)
+    out = tmp_path / "run"
+    process = _fit_process(tmp_path / "fit.toml", out)
+    time.sleep(delay)
+    process.send_signal(signal.SIGINT)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 130, stderr
+    assert "Traceback" not in stderr and "Fatal" not in stderr and "ignored" not in stderr
+    assert [line for line in stderr.splitlines() if "interrupted" in line], stderr
+    assert not out.exists() or (out / "checkpoint.npz").exists()
+
+
 RESUMABLE = CONFIG + (
     '[[fit.phases]]\nsolver = "adam"\nsteps = 60\nspp = 4\nlr = 0.05\naverage = 0.5\n'
 )
