@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import logging
 import math
@@ -59,6 +60,13 @@ IMAGE_SUFFIXES = (".png", ".exr", ".tif", ".tiff", ".jpg", ".jpeg")
 
 #: Whether this run has said it was interrupted (`_run` says so where nothing did).
 _said = {"interrupted": False}
+
+
+#: Where a path holds a name longer than the file system allows (it was an internal error).
+NAME_TOO_LONG = (
+    "a name in this path is longer than the file system allows (255 bytes on most); choose a "
+    "shorter one"
+)
 
 
 def _say(label: str, style: str, text: str) -> None:
@@ -1061,6 +1069,9 @@ def _run_app(argv: list[str] | None) -> int:
     except Exception as err:
         if entry.asked():  # a Ctrl-C inside a library's import or callback, surfaced as another
             return 130  # error (drjit's import: a NameError)
+        if isinstance(err, OSError) and err.errno == errno.ENAMETOOLONG:  # a path's long name
+            _say("error:", "red", f"{err.filename}: {NAME_TOO_LONG}")
+            return 2
         if os.environ.get("LAYERFIT_DEBUG"):
             raise
         first = (str(err).strip().splitlines() or [""])[0][:300]

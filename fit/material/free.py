@@ -76,7 +76,11 @@ def _why_not(material: Material, text: str) -> str:
         if len(material.layers) < 2:
             return "the bump comes from the masks of a stack of two or more layers; drop the key"
         return "bump is 0 in [material], so it is not built; give it a start > 0 (e.g. 0.0002)"
-    owners = {name for name, _ in material.layers} | ({""} if "bump" in material.params else set())
+    layer_names = [name for name, _ in material.layers]
+    if text in layer_names:  # a layer named alone
+        keys = ", ".join(k for k in material.params if parse_key(k).owner == text)
+        return f"{text!r} is a layer; name its parameters: {keys}"
+    owners = set(layer_names) | ({""} if "bump" in material.params else set())
     if key.owner not in owners:
         layers = ", ".join(name for name, _ in material.layers)
         return (

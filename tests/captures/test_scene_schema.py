@@ -131,6 +131,37 @@ def scene_table(**over):
     return table
 
 
+def test_a_light_that_lights_nothing_is_refused_by_its_field(tmp_path):
+    """A rectangle whose emitting side faces away from the whole object (emit_direction given
+    as +(u_axis x v_axis): a synth render 3.4x darker, its key light lighting nothing), a black
+    colour (the error named power), a black environment map: each refused, naming the field.
+    A light with the object partly ahead of it is kept."""
+    away = {"center": [0, 0, 3], "u_axis": [1, 0, 0], "v_axis": [0, -1, 0], "size": [1, 1]}
+    away |= {"emit_direction": [0, 0, 1], "radiance": 5.0}
+    with pytest.raises(CaptureError, match=r"s.toml: scene.lights\[1\]: emits towards .* away"):
+        parse_scene(scene_table(lights=[scene_table()["lights"][0], away]), tmp_path / "s.toml")
+    sideways = away | {"center": [0, 0, 1.5], "emit_direction": [1, 0, 0]}
+    sideways |= {"u_axis": [0, 1, 0], "v_axis": [0, 0, 1]}
+    parse_scene(scene_table(lights=[sideways]), tmp_path / "s.toml")  # the object half ahead
+    black = scene_table()["lights"][0] | {"color": [0, 0, 0]}
+    del black["temperature"]
+    with pytest.raises(CaptureError, match=r"lights\[0\]\.color.* is black"):
+        parse_scene(scene_table(lights=[black]), tmp_path / "s.toml")
+    write_image(tmp_path / "sky.exr", np.zeros((4, 8, 3), np.float32))
+    dark = scene_table(lights=[], environment={"type": "envmap", "file": "sky.exr"})
+    with pytest.raises(CaptureError, match="is black everywhere: it lights nothing"):
+        parse_scene(dark, tmp_path / "s.toml")
+
+
+def test_a_cup_of_too_many_segments_is_refused():
+    """A cup's segments are bounded (1e8 asked for 97 GiB: an internal MemoryError)."""
+    from captures.schema import MAX_CUP_SEGMENTS
+
+    table = scene_table(geometry={"type": "cup", "segments": 10**8})
+    with pytest.raises(CaptureError, match=f"segments.*{MAX_CUP_SEGMENTS}"):
+        parse_scene(table, Path("s.toml"))
+
+
 def test_rectangle_light_by_power_and_temperature(tmp_path):
     scene = parse_scene(scene_table(), tmp_path / "s.toml")
     (light,) = scene.lights
@@ -519,6 +550,7 @@ def test_an_object_far_from_the_origin_is_refused(tmp_path, offset, far):
     camera = {"origin": [offset, -offset - 6, 0], "target": [offset, -offset, 0]}
     table = scene_table(geometry="cube.obj")
     table["cameras"][0].update(camera)
+    table["lights"][0].update(center=[offset + 2, -offset - 2, 2], target=[offset, -offset, 0])
     if not far:
         parse_scene(table, tmp_path / "s.toml")
         return

@@ -1899,3 +1899,24 @@ def test_inspect_in_a_capture_folder_names_its_default_sheet(base, tmp_path, cap
     code, _, stderr = run(["inspect", "cap/capture.toml", "--no-silhouette"], capsys)
     assert code == 0, stderr
     assert (work / "out" / "inspect-cap.png").is_file()
+
+
+def test_a_name_too_long_for_the_file_system_is_one_line(tmp_path, capsys):
+    """An output path with a name over 255 bytes: one line naming the path and the fix, exit 2
+    (it was "internal error (OSError: [Errno 36] File name too long)"), nothing written."""
+    long = tmp_path / ("x" * 300)
+    code, _, stderr = run(
+        ["synth", str(ROOT / "configs" / "glazed-sphere.toml"), "--out", str(long)], capsys
+    )
+    assert code == 2 and "longer than the file system allows" in stderr and "x" * 300 in stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_layer_named_alone_in_free_says_to_name_its_parameters():
+    """free = ["glaze"] said "no layer '' is built (built: glaze)"."""
+    from fit.material import resolve
+    from fit.material.build import build_material
+
+    material = build_material({"type": "glaze"})
+    with pytest.raises(KeyError, match=r"'glaze' is a layer; name its parameters: glaze\.pigment"):
+        resolve(material, ["glaze"])
