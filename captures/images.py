@@ -182,6 +182,34 @@ def colour_channels(names: list[str]) -> tuple[list[int], int | None] | str:
     return f"no RGB or grey (Y) channels among {shown}; save it as RGB"
 
 
+#: What EXIF's Orientation tag asks a viewer to do with the stored pixels.
+ORIENTATIONS = {
+    2: "mirrored",
+    3: "turned 180 degrees",
+    4: "flipped upside down",
+    5: "mirrored and turned 90 degrees",
+    6: "turned 90 degrees clockwise",
+    7: "mirrored and turned 90 degrees",
+    8: "turned 90 degrees anticlockwise",
+}
+
+
+def orientation_problem(spec) -> str | None:
+    """Why an image whose EXIF Orientation is not 1 is refused (None where it is 1 or absent):
+    viewers show it turned, its pixels are read as stored, and which of the two its camera was
+    set up on (the size, the up vector) is not known. A phone's upright photo stored sideways
+    was read sideways without a word."""
+    value = spec.get_int_attribute("Orientation", 1)
+    if value not in ORIENTATIONS:
+        return None
+    return (
+        f"its EXIF Orientation is {value}: viewers show it {ORIENTATIONS[value]}, but its pixels "
+        f"are read as stored ({spec.width}x{spec.height}); save its pixels upright (exiftran "
+        "-ai, or ImageMagick's -auto-orient) if its camera was set up on the image as shown, "
+        "or set the tag to 1 (exiftool -n -Orientation=1) if on the pixels as stored"
+    )
+
+
 def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """(linear RGB float32 (H, W, 3), saturated (H, W) bool, warnings) of an image file.
 
@@ -210,6 +238,9 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
         )
     spec = buf.spec()
     buf.close()
+    turned = orientation_problem(spec)
+    if turned is not None:
+        raise CaptureError(f"{path}: {turned}")
     chosen = colour_channels(list(spec.channelnames))
     if isinstance(chosen, str):
         raise CaptureError(f"{path}: {chosen}")
@@ -258,14 +289,38 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
 
 def read_mask(path: str | Path) -> np.ndarray:
     """A boolean object mask from an image file (any channel > 0.5; a mask whose brightest
-    value is below 0.5, e.g. stored as codes 0 and 1, at half its brightest)."""
+    value is below 0.5, e.g. stored as codes 0 and 1, at half its brightest). A cut-out whose
+    colour is flat is read from its alpha (it was ignored: the whole frame the object); one
+    whose colour and alpha disagree is refused."""
     pixels = read_image(path)
     reader = oiio.ImageInput.open(str(path))  # read above: it opens
-    chosen = colour_channels(list(reader.spec().channelnames))
+    spec = reader.spec()
+    chosen = colour_channels(list(spec.channelnames))
     reader.close()
+    turned = orientation_problem(spec)
+    if turned is not None:
+        raise CaptureError(f"{path}: {turned}")
     # its colour channels, alpha left out: a grey-and-alpha PNG's alpha is 1 on every pixel,
     # and read as a channel it made the whole image the object
-    pixels = pixels[..., chosen[0]] if not isinstance(chosen, str) else pixels[..., :3]
+    colour = pixels[..., chosen[0]] if not isinstance(chosen, str) else pixels[..., :3]
+    mask = _threshold(colour)
+    alpha = None if isinstance(chosen, str) or chosen[1] is None else pixels[..., chosen[1]]
+    if alpha is None or not np.any(alpha < 1.0):
+        return mask
+    # a cut-out (RGBA, the object in its alpha): its alpha is the mask where its colour is flat
+    if float(np.ptp(colour)) == 0.0:
+        return _threshold(alpha[..., None])
+    if np.count_nonzero(mask != _threshold(alpha[..., None])) > 0.01 * mask.size:
+        raise CaptureError(
+            f"{path}: its colour and its alpha channel draw different objects; a mask is one: "
+            "save the object mask as grey (white on the object) without alpha"
+        )
+    return mask
+
+
+def _threshold(pixels: np.ndarray) -> np.ndarray:
+    """Any channel above 0.5 (half the brightest value where that is below 0.5: a mask stored as
+    codes 0 and 1)."""
     top = float(pixels.max()) if pixels.size else 0.0
     return np.any(pixels > (0.5 if top >= 0.5 or top <= 0 else 0.5 * top), axis=-1)
 

@@ -198,9 +198,21 @@ def diligent_capture(folder: str | Path, downscale: int = 1) -> Capture:
             f"{len(directions)} rows and light_intensities.txt {len(intensities)}; give one row "
             "per image in each"
         )
+    listed = folder / "filenames.txt"
+    seen: dict[str, int] = {}
     for row, (name, direction, intensity) in enumerate(
         zip(names, directions, intensities, strict=True), 1
     ):
+        if name in seen:  # two views of one name: a manifest's or a peer's are refused too
+            raise CaptureError(
+                f"{listed}: row {row} ({name}) repeats row {seen[name]}; list each image once "
+                "(and its rows in light_directions.txt and light_intensities.txt)"
+            )
+        seen[name] = row
+        if not (folder / name).resolve().is_relative_to(folder.resolve()):
+            raise CaptureError(
+                f"{listed}: row {row} ({name}) is outside the folder; keep the images in it"
+            )
         if not np.linalg.norm(direction) > 1e-6:
             raise CaptureError(
                 f"{folder / 'light_directions.txt'}: row {row} ({name}) is the zero vector; give "
@@ -236,19 +248,28 @@ def diligent_capture(folder: str | Path, downscale: int = 1) -> Capture:
         max_depth=2,
         meta={"mask": mask},
     )
-    views = []
-    for name, direction, intensity in zip(names, directions, intensities, strict=True):
+    views, absent = [], []
+    for row, (name, direction, intensity) in enumerate(
+        zip(names, directions, intensities, strict=True), 1
+    ):
         path = folder / name
         if not path.exists():
+            absent.append(f"{name} (row {row})")
             continue  # the benchmark's subsets ship some of the 96 images
         image, saturated, _ = read_linear(path, "linear")
         if image.shape[:2] != (h, w):
-            raise CaptureError(f"{path}: {image.shape[1]}x{image.shape[0]}, mask is {w}x{h}")
+            raise CaptureError(
+                f"{path}: {image.shape[1]}x{image.shape[0]}, mask.png is {w}x{h}; give every "
+                "image the mask's size (crop or scale them alike)"
+            )
         image, weight = validity(image / intensity.astype(np.float32), saturated, covered)
         light = DirectionalLight(tuple(-direction / np.linalg.norm(direction)), (1.0, 1.0, 1.0))
         views.append(View(path.stem, image, weight, camera, 1.0, (light,), mask))
     if not views:
         raise CaptureError(f"{folder}: none of the images in filenames.txt is present")
+    if absent:  # a typo drops its view: said, not silent
+        shown = ", ".join(absent[:5]) + (f" and {len(absent) - 5} more" if len(absent) > 5 else "")
+        warnings.append(f"{listed}: {len(absent)} of {len(names)} images absent, left out: {shown}")
     return Capture(scene, views, {}, folder, warnings).downscaled(downscale)
 
 

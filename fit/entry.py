@@ -9,6 +9,7 @@ its own handling begins (`fit.cli._start`, the fit's stop handler)."""
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import sys
 from collections.abc import Iterator
@@ -65,5 +66,8 @@ def main() -> None:
         from .cli import main as run
     except KeyboardInterrupt:
         sys.stderr.write("interrupted: stopped while starting; nothing written\n")
-        sys.exit(130)
+        sys.stderr.flush()
+        # at once: half-imported modules (NumPy's, SciPy's) have nothing to finish, and the
+        # interpreter's finalisation after the cut import ended once by SIGINT, not 130
+        os._exit(130)
     run()

@@ -421,7 +421,14 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
     views = [(v.name, v.camera) for v in capture.views]
     where = capture.path or cfg.capture
     masks = [None if v.mask is None else (v.mask, v.mask_coverage) for v in capture.views]
-    for message in view_warnings(capture.scene, views, where, masks) if trace else ():
+    messages = view_warnings(capture.scene, views, where, masks) if trace else []
+    if cfg.gains and len(fitted.views) < 2 and trace:  # it had no effect, silently
+        messages.append(
+            f"{cfg.path}: fit.gains: with one fitted view its gain is pinned at 1 (the gains' "
+            "geometric mean is 1), so its exposure is taken as declared; fit two or more views, "
+            "or set gains = false"
+        )
+    for message in messages:
         log.warning(message)
         capture.warnings.append(message)  # in the summary and the report too
     refusal = forward_mode_refusal(problem)

@@ -11,6 +11,7 @@ from pydantic import Field, field_validator, model_validator
 
 from captures import Scene, parse_scene
 from captures.model import (
+    FieldError,
     NonNegativeInt,
     PositiveFloat,
     PositiveInt,
@@ -57,6 +58,14 @@ class FitSettings(StrictModel):
         if twice:
             raise ValueError(f"lists {', '.join(twice)} more than once; list each key once")
         return value
+
+    @model_validator(mode="after")
+    def _loss_scale_for_a_robust_loss(self):
+        if self.loss_scale is not None and self.loss == "l2":  # it had no effect, silently
+            raise FieldError(
+                "loss_scale", 'applies to loss = "huber" or "cauchy"; remove it, or set loss'
+            )
+        return self
 
     @model_validator(mode="after")
     def _default_phases(self):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+from typing import Annotated
 
 import jax
 import jax.numpy as jnp
@@ -24,7 +25,7 @@ class AdamOptions(Options):
     that ends at a small rate hands the next one a start near its optimum."""
     average: float = Field(0.0, ge=0.0, le=1.0)
     """Fraction of the last iterates averaged into the result (Polyak; 0: the last iterate)."""
-    hold: tuple[str, ...] = ()
+    hold: Annotated[tuple[str, ...], Field(strict=False)] = ()  # TOML's array, a list
     """Material keys (or fnmatch patterns: `"*.mask.threshold"`) held at their values through
     this phase. A mask's threshold moves the boundary between two layers, so its gradient is the
     difference of their radiances: from neutral starting colours that has the wrong sign as often

@@ -90,9 +90,13 @@ def tail_variance(tail: list) -> np.ndarray | None:
 
 
 class Options(BaseModel):
-    """A solver's own settings in a `[[fit.phases]]` table (each field documented)."""
+    """A solver's own settings in a `[[fit.phases]]` table (each field documented). Strict, as
+    the rest of a config: `spp = "4"`, `steps = 3.0` or `profile_gains = "yes"` are refused (they
+    ran; `steps = true` ran one step)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(
+        extra="forbid", frozen=True, strict=True, use_attribute_docstrings=True
+    )
 
 
 #: `progress(step, loss)` after a solver's step.

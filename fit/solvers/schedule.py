@@ -35,7 +35,9 @@ class Phase(BaseModel):
     and resolution; the solver's own options (Adam's `lr`, LM's `jacobian_spp`, ...) beside them,
     checked against the solver's `Options`."""
 
-    model_config = ConfigDict(extra="allow", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(
+        extra="allow", frozen=True, strict=True, use_attribute_docstrings=True
+    )
 
     solver: str
     """The solver: adam | gn | lm | bfgs (`fit/solvers/registry.py`)."""

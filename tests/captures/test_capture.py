@@ -798,3 +798,52 @@ def test_a_peer_truth_outside_the_bounds_is_fitted_not_scored(tmp_path, caplog):
         check_truth(capture, free, path, glaze)
     assert "truth.glaze.roughness = 0.0064" in caplog.text and "not scored" in caplog.text
     assert "glaze.roughness" not in capture.truth and capture.truth["glaze.ior"] == 1.5
+
+
+def _oiio_write(path: Path, pixels: np.ndarray, fmt, **attributes) -> Path:
+    import OpenImageIO as oiio
+
+    spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], fmt)
+    for name, value in attributes.items():
+        spec.attribute(name, value)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(pixels)
+    out.close()
+    return path
+
+
+@pytest.mark.parametrize("suffix", [".jpg", ".png", ".tif"])
+@pytest.mark.parametrize("orientation", [3, 6, 8])
+def test_a_photo_viewers_show_turned_is_refused_with_both_fixes(tmp_path, suffix, orientation):
+    """A photo stored sideways with an EXIF Orientation (phones do this): its pixels were read
+    as stored without a word, though viewers, and the user setting up its camera, see it turned;
+    now refused, naming the tag and the fix for either case. Orientation 1 reads."""
+    import OpenImageIO as oiio
+
+    pixels = np.full((30, 40, 3), 128, np.uint8)
+    path = _oiio_write(tmp_path / f"v{suffix}", pixels, oiio.UINT8, Orientation=orientation)
+    with pytest.raises(CaptureError, match=rf"EXIF Orientation is {orientation}: .*40x30"):
+        read_linear(path, "srgb")
+    upright = _oiio_write(tmp_path / f"u{suffix}", pixels, oiio.UINT8, Orientation=1)
+    assert read_linear(upright, "srgb")[0].shape == (30, 40, 3)
+
+
+def test_a_cut_out_mask_is_read_from_its_alpha(tmp_path):
+    """An RGBA mask with the object in its alpha (segmentation tools write these): its flat
+    colour made the whole frame the object (white) or none of it (black); now its alpha is the
+    mask. Colour and alpha that draw different objects are refused; agreeing ones read."""
+    import OpenImageIO as oiio
+
+    from captures.images import read_mask
+
+    y, x = np.mgrid[:30, :40]
+    disc = (x - 20) ** 2 + (y - 15) ** 2 < 100
+    for grey in (0.0, 1.0):
+        rgba = np.dstack([np.full((30, 40, 3), grey), disc]).astype(np.float32)
+        path = _oiio_write(tmp_path / f"m{grey}.png", rgba, oiio.UINT8)
+        assert np.array_equal(read_mask(path), disc)
+    agree = np.dstack([np.repeat(disc[..., None], 3, 2), disc]).astype(np.float32)
+    assert np.array_equal(read_mask(_oiio_write(tmp_path / "a.png", agree, oiio.UINT8)), disc)
+    other = np.dstack([np.repeat(~disc[..., None], 3, 2), disc]).astype(np.float32)
+    with pytest.raises(CaptureError, match="colour and its alpha channel draw different"):
+        read_mask(_oiio_write(tmp_path / "o.png", other, oiio.UINT8))
