@@ -279,20 +279,20 @@ class Manifest(StrictModel):
         return self
 
 
+#: What to give where another kind of file was given as a capture.
+GIVE_A_CAPTURE = (
+    "give a capture (a folder holding capture.toml with [[views]], a peer scene.json or a "
+    "DiLiGenT folder)"
+)
+
+
 def load_capture(path: str | Path) -> Capture:
     """Read a capture manifest and its images into linear arrays with validity weights."""
     path = Path(path)
     if path.is_dir():
         path = path / "capture.toml"
     doc = load_toml(path, "capture manifest")
-    expect_kind(
-        doc,
-        path,
-        "a capture manifest",
-        "give a capture (a folder holding capture.toml with [[views]], a peer scene.json or a "
-        "DiLiGenT folder)",
-        CaptureError,
-    )
+    expect_kind(doc, path, "a capture manifest", GIVE_A_CAPTURE, CaptureError)
     manifest = parse_model(Manifest, doc, path)
     settings = manifest.capture
     check_view_names([spec.image for spec in manifest.views], path)

@@ -16,21 +16,10 @@ def open_capture(path: str | Path, downscale: int = 1, name: str | None = None) 
     path = Path(path)
     if downscale < 1:
         raise CaptureError(f"{path}: downscale = {downscale}; give an integer >= 1")
-    if not path.exists():
-        raise CaptureError(
-            f"{path}: no such capture; give a capture.toml, its folder, a peer "
-            "scene.json or a DiLiGenT folder"
-        )
-    if path.is_file() and path.name != "scene.json" and path.suffix.lower() != ".toml":
-        raise CaptureError(
-            f"{path}: is not a capture; give its capture.toml (or the folder holding it), a peer "
-            "scene.json or a DiLiGenT folder"
-        )
-    if path.is_dir() and (path / "filenames.txt").exists():
+    kind, path = _kind(path)
+    if kind == "diligent":
         return diligent_capture(path, downscale)
-    if path.is_dir() and not (path / "capture.toml").exists() and (path / "scene.json").is_file():
-        path = path / "scene.json"  # a peer target's folder
-    if path.name == "scene.json":
+    if kind == "peer":
         try:
             capture = peer_capture(path)
         except CaptureError:
@@ -44,12 +33,64 @@ def open_capture(path: str | Path, downscale: int = 1, name: str | None = None) 
                 f"{path}: not a peer scene.json this version reads ({type(err).__name__}: {err}); "
                 "check it against the peer format"
             ) from None
-    elif path.is_dir() and not (path / "capture.toml").exists():
-        raise CaptureError(
-            f"{path}: no capture.toml, scene.json or DiLiGenT files in the folder; give a "
-            "capture folder"
-        )
     else:
         capture = load_capture(path)
     capture.check_factor(downscale, name or f"{path}: downscale")
     return capture.downscaled(downscale)
+
+
+def check_capture(path: str | Path) -> None:
+    """What `open_capture` refuses of a capture's own file before reading any image: a file
+    that is no capture, a manifest that is another kind of file (a fit config given as a
+    capture) or not valid TOML, a `scene.json` that is not JSON. A batch checks its captures so
+    before any fit starts (a folder without its file is left to the fit)."""
+    import json
+
+    from .capture import GIVE_A_CAPTURE
+    from .model import expect_kind
+    from .schema import load_toml
+
+    path = Path(path)
+    if path.is_dir() and not any((path / n).exists() for n in ("capture.toml", "scene.json")):
+        return
+    kind, path = _kind(path)
+    if kind == "peer":
+        try:
+            json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as err:
+            raise CaptureError(f"{path}: not a readable peer scene.json ({err}); fix it") from None
+    elif kind == "manifest":
+        path = path / "capture.toml" if path.is_dir() else path
+        expect_kind(
+            load_toml(path, "capture manifest"),
+            path,
+            "a capture manifest",
+            GIVE_A_CAPTURE,
+            CaptureError,
+        )
+
+
+def _kind(path: Path) -> tuple[str, Path]:
+    """("diligent" | "peer" | "manifest", its path) of a capture path, or a `CaptureError`."""
+    if not path.exists():
+        raise CaptureError(
+            f"{path}: no such capture; give a capture.toml, its folder, a peer "
+            "scene.json or a DiLiGenT folder"
+        )
+    if path.is_file() and path.name != "scene.json" and path.suffix.lower() != ".toml":
+        raise CaptureError(
+            f"{path}: is not a capture; give its capture.toml (or the folder holding it), a peer "
+            "scene.json or a DiLiGenT folder"
+        )
+    if path.is_dir() and (path / "filenames.txt").exists():
+        return "diligent", path
+    if path.is_dir() and not (path / "capture.toml").exists() and (path / "scene.json").is_file():
+        path = path / "scene.json"  # a peer target's folder
+    if path.name == "scene.json":
+        return "peer", path
+    if path.is_dir() and not (path / "capture.toml").exists():
+        raise CaptureError(
+            f"{path}: no capture.toml, scene.json or DiLiGenT files in the folder; give a "
+            "capture folder"
+        )
+    return "manifest", path

@@ -129,7 +129,22 @@ def load_batch(path: str | Path) -> Batch:
                 jobs.append(Job(name, config, capture, seed, out / name))
     _check_out(path, spec, out, set(names))
     _check_configs(path, spec)
+    _check_captures(path, spec)
     return Batch(path, spec, jobs)
+
+
+def _check_captures(path: Path, spec: BatchSpec) -> None:
+    """Each capture's path, kind and syntax (no image read: each fit reads its own), so a
+    capture.toml with a TOML error, or a fit config given as a capture, stops the batch before
+    Ray starts, by name (it was that fit's failure after the others had run)."""
+    from captures.errors import InputError
+    from captures.open import check_capture
+
+    for i, capture in enumerate(spec.captures):
+        try:
+            check_capture(capture)
+        except InputError as err:
+            raise ConfigError(f"{path}: captures[{i}]: {err}") from None
 
 
 def _check_configs(path: Path, spec: BatchSpec) -> None:

@@ -492,3 +492,23 @@ def test_the_index_names_a_fits_warnings():
     assert entry["warnings"] == said
     assert said in _csv([entry]) and "warnings" in COLUMNS  # the HTML's columns are COLUMNS
     assert summary_entry({"values": {}, "error": {}})["warnings"] == ""
+
+
+def test_a_capture_that_cannot_be_one_stops_the_batch_before_ray(tmp_path):
+    """A capture.toml that is not valid TOML, or a fit config given as a capture: refused by
+    the spec's file and index before Ray starts, exit 2 (each was its fit's failure, after the
+    other fits had run)."""
+    from captures.errors import InputError
+
+    (tmp_path / "cap").mkdir()
+    (tmp_path / "fit.toml").write_text(TINY)
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "capture.toml").write_text("[capture\n")
+    spec = tmp_path / "batch.toml"
+    for captures, message in (
+        ('["cap", "bad"]', r"batch.toml: captures\[1\]: .*bad/capture.toml"),
+        ('["fit.toml"]', r"captures\[0\]: .*fit.toml: is a fit config, not a capture manifest"),
+    ):
+        spec.write_text(f'configs = ["fit.toml"]\ncaptures = {captures}\n')
+        with pytest.raises(InputError, match=message):
+            load_batch(spec)
