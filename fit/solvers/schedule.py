@@ -68,10 +68,13 @@ class Phase(BaseModel):
             self._options = SOLVERS[self.solver].Options(**extra)
         except ValidationError as err:
             first = err.errors(include_url=False)[0]
-            key = ".".join(str(x) for x in first["loc"])
-            raise FieldError(
-                key, f"got {first['input']!r}; {first['msg'].replace('Input should', 'should')}"
-            ) from None
+            # the field and its items' indices; not pydantic's union members ("constrained-int")
+            loc = first["loc"]
+            key = ".".join(str(x) for x in (loc[0], *(i for i in loc[1:] if isinstance(i, int))))
+            said = (
+                first["msg"].replace("Input should", "should").replace("a valid tuple", "an array")
+            )
+            raise FieldError(key, f"got {first['input']!r}; {said}") from None
         return self
 
     @property

@@ -1115,6 +1115,16 @@ CASES: list[Case] = [
         ("fit.toml", "fit.loss_scale", "huber"),
     ),
     (
+        "fit-phase-primal-spp-huge",
+        fit_cfg('solver = "adam"\n', 'solver = "gn"\nprimal_spp = 2000000\n'),
+        ("fit.toml", "fit.phases[0].primal_spp:", "1048576"),
+    ),
+    (
+        "fit-phase-hold-string",
+        fit_cfg("spp = 1\n", 'spp = 1\nhold = "glaze.ior"\n'),
+        ("fit.toml", "fit.phases[0].hold", "should be an array"),
+    ),
+    (
         "fit-phase-steps-bool",
         fit_cfg("steps = 1\n", "steps = true\n"),
         ("fit.toml", "fit.phases[0].steps", "integer"),
