@@ -108,6 +108,11 @@ def check_output(
             f"{option} {shown}: the path is not UTF-8 text (its bytes shown escaped); give a "
             "path of UTF-8 text"
         )
+    if suffixes and not folder and path.is_dir():  # a file's name wanted
+        raise InputError(
+            f"{option} {path}: is a folder; give a file's name in it (e.g. "
+            f"{path / ('out' + suffixes[0])})"
+        )
     if suffixes and path.suffix.lower() not in suffixes:
         raise InputError(
             f"{option} {path}: unsupported file type {path.suffix or '(none)'!r}; "

@@ -823,3 +823,13 @@ def test_closed_meshes_are_told_from_open_ones_whichever_way_they_are_wound():
     assert closed(corners, triangles) and closed(corners, flipped)
     assert closed(soup, np.arange(len(soup)).reshape(-1, 3))
     assert not closed(corners, triangles[2:]) and not closed(corners, triangles[:0])
+
+
+def test_a_folder_given_for_an_output_file_names_the_fix(tmp_path):
+    """`--sheet some/folder`: it said "unsupported file type '(none)'"."""
+    from captures.errors import InputError
+    from captures.files import check_output
+
+    with pytest.raises(InputError, match=r"--sheet .*: is a folder; give a file's name in it"):
+        check_output(tmp_path, "--sheet", suffixes=(".png",))
+    assert check_output(tmp_path / "s.png", "--sheet", suffixes=(".png",)) == tmp_path / "s.png"
