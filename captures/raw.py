@@ -72,6 +72,14 @@ def clip_level(mosaic: np.ndarray, black: float, white: float) -> float:
     return peak if count >= max(16, PLATEAU_SHARE * mosaic.size) else white
 
 
+#: LibRaw's `sizes.flip`: what a viewer does with the sensor's picture.
+RAW_FLIPS = {
+    3: "turned 180 degrees",
+    5: "turned 90 degrees anticlockwise",
+    6: "turned 90 degrees clockwise",
+}
+
+
 def read_raw(path: str | Path) -> RawImage:
     """A RAW file's camera RGB (2x2 superpixels of its default crop), saturation and colour
     metadata, or a one-line `CaptureError`."""
@@ -103,6 +111,15 @@ def read_raw(path: str | Path) -> RawImage:
         ) from None
     if desc not in ("RGBG", "RGGB") or pattern.shape != (2, 2):
         raise CaptureError(f"{path}: colour filter {desc!r} is not a Bayer RGB mosaic")
+    flip = int(getattr(sizes, "flip", 0) or 0)
+    if flip in RAW_FLIPS:  # a camera held upright: viewers turn it, its sensels are as stored
+        raise CaptureError(
+            f"{path}: the camera recorded it {RAW_FLIPS[flip]} (viewers show it so), but its "
+            "sensels are read as the sensor stored them; if its camera was set up on the photo "
+            "as shown, develop it upright to a linear 16-bit TIFF (e.g. dcraw -4 -T) and "
+            'declare encoding = "linear"; if on the sensor\'s own orientation, set its '
+            "Orientation tag to 1 (exiftool -n -Orientation=1)"
+        )
     size, sensels = path.stat().st_size, int(sizes.raw_width) * int(sizes.raw_height)
     if size * 8 < MIN_BITS_PER_SENSEL * sensels:  # LibRaw leaves the missing data undefined
         raise CaptureError(

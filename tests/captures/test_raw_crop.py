@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import captures.raw as raw_module
+from captures import CaptureError
 from captures.raw import develop, read_raw
 
 WHITE = 65535
@@ -164,3 +165,15 @@ def test_the_xyz_fallback_matrix_keeps_saturated_colours():
     colours = np.array([[0.5, 0.1, 0.1], [0.1, 0.6, 0.2], [0.3, 0.3, 0.3], [0.05, 0.1, 0.7]])
     developed = (colours @ response.T * wb) @ matrix.T
     np.testing.assert_allclose(developed / developed[2, 1], colours / 0.3, rtol=1e-9)
+
+
+@pytest.mark.parametrize("flip", [3, 5, 6])
+def test_a_raw_the_camera_recorded_turned_is_refused(tmp_path, monkeypatch, flip):
+    """A RAW from a camera held upright (LibRaw's flip 3, 5 or 6): its sensels were read as the
+    sensor stored them without a word; refused with the fix for either set-up. flip 0 reads."""
+    colors = np.tile(RGGB, (5, 7))
+    path = fake_file(tmp_path, monkeypatch, mosaic_of(colors), colors, flip=flip)
+    with pytest.raises(CaptureError, match="the camera recorded it turned"):
+        raw_module.read_raw(path)
+    path = fake_file(tmp_path, monkeypatch, mosaic_of(colors), colors, flip=0)
+    assert raw_module.read_raw(path) is not None
