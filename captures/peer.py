@@ -73,7 +73,14 @@ def load_peer_scene(path: str | Path) -> Scene:
         for k in ("width", "height"):
             if isinstance(camera[k], float) and camera[k].is_integer():
                 camera[k] = int(camera[k])
-    images = [path.parent / str(field(v, "image", f"views[{i}]")) for i, v in enumerate(views)]
+    images = []
+    for i, view in enumerate(views):
+        name = field(view, "image", f"views[{i}]")
+        if not isinstance(name, str) or not name.strip():  # null or a number named "peer/None"
+            raise CaptureError(
+                f"{path}: views[{i}].image is {json.dumps(name)}; give the view's image file name"
+            )
+        images.append(path.parent / name)
     for i, view in enumerate(views):
         unknown(view, VIEW_FIELDS, f"views[{i}]")
     lights = doc.get("lights", [])

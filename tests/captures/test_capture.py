@@ -587,6 +587,8 @@ def _light(doc):
         ("view", {"origin": [float("nan"), 0, 0]}, r"views\[0\]\.origin\[0\]: got nan"),
         ("view", {"up": [3, -3, 2]}, r"views\[0\]\.up: .* along the viewing"),
         ("view", {"width": 0}, r"views\[0\]\.width: got 0"),
+        ("view", {"image": 5}, r"views\[0\]\.image is 5; give the view's image"),
+        ("view", {"image": ""}, r'views\[0\]\.image is ""; give'),
         ("view", {"origin": [0.1, 0.1, 0.1]}, r"views\[0\]\.origin .* inside the object"),
         ("light", {"radiance_rgb": [-1, 1, 1]}, r"lights\[0\]\.radiance_rgb\[0\]: got -1"),
         ("light", {"size": [0, 1]}, r"lights\[0\]\.size\[0\]: got 0"),
