@@ -245,6 +245,8 @@ def _describe(model: type, error: dict, where: str) -> tuple[str, str]:
         return _join(where, parts), f"got {_show(value)}; choose one of {choices}"
     msg = error["msg"].replace("Input should", "should").replace(" after validation", "")
     msg = msg.replace("a valid tuple", "an array").replace("a valid list", "an array")
+    if kind == "path_type":  # "Input is not a valid path for <class 'pathlib.Path'>"
+        msg = "should be a file name (a string)"
     for prefix in ("Tuple ", "List ", "Dictionary "):
         msg = msg.removeprefix(prefix)
     return _join(where, parts), f"got {_show(value)}; {msg}"

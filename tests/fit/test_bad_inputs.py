@@ -767,6 +767,11 @@ CASES: list[Case] = [
         ("capture.toml", "views[0].gain"),
     ),
     (
+        "manifest-image-number",
+        manifest('image = "view_00.exr"', "image = 1"),
+        ("capture.toml", "views[0].image", "got 1; should be a file name (a string)"),
+    ),
+    (
         "manifest-image-missing",
         manifest('image = "view_00.exr"', 'image = "none.exr"'),
         ("capture.toml", "views[0].image", "none.exr"),
