@@ -428,6 +428,12 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
             "geometric mean is 1), so its exposure is taken as declared; fit two or more views, "
             "or set gains = false"
         )
+    for k, phase in enumerate(cfg.phases):  # a gains option where no gain is fitted
+        if not cfg.gains and "profile_gains" in phase.options.model_fields_set and trace:
+            messages.append(
+                f"{cfg.path}: fit.phases[{k}].profile_gains: no gains are fitted (fit.gains is "
+                "false), so it does nothing; remove it, or set fit.gains"
+            )
     for message in messages:
         log.warning(message)
         capture.warnings.append(message)  # in the summary and the report too
