@@ -709,9 +709,8 @@ def fit(
     from .errors import OutputError
 
     try:
-        with entry.deferred():  # JAX and XLA start here: a Ctrl-C waits until they have
-            prepared = prepare(cfg, holdout)
-        if entry.asked():
+        prepared = prepare(cfg, holdout)  # reads the photos: a Ctrl-C stops it at once
+        if entry.asked():  # one that JAX's gc callback swallowed meanwhile
             raise KeyboardInterrupt
         if resume:  # before any progress bar: a checkpoint of another fit is one line
             check_resume(prepared, cfg, out)
@@ -1058,6 +1057,8 @@ def _run_app(argv: list[str] | None) -> int:
     except typer.Abort:  # Ctrl-C before a command's own handling (click's)
         _say("interrupted:", "yellow", "stopped by Ctrl-C or SIGTERM")
         code = 130
+    except KeyboardInterrupt:  # outside click's own handling (typer building the command)
+        code = 130  # `_run` says so
     except BackendError as err:  # raised outside _start, e.g. by a library call
         _say("error:", "red", str(err))
         code = 1

@@ -70,4 +70,8 @@ def main() -> None:
         # at once: half-imported modules (NumPy's, SciPy's) have nothing to finish, and the
         # interpreter's finalisation after the cut import ended once by SIGINT, not 130
         os._exit(130)
-    run()
+    try:
+        run()
+    except KeyboardInterrupt:  # between the command's own handlers (logging set up, exiting)
+        sys.stderr.write("interrupted: stopped by Ctrl-C or SIGTERM\n")
+        sys.exit(130)

@@ -2004,3 +2004,16 @@ def test_gains_with_one_fitted_view_are_said_to_do_nothing(base, tmp_path, capsy
     assert "fit.phases[0].profile_gains: no gains are fitted" in " ".join(caplog.text.split())
     summary = json.loads((work / "run" / "summary.json").read_text())
     assert any("fit.gains" in w for w in summary["capture_warnings"])
+
+
+def test_a_ctrl_c_while_the_command_line_is_built_is_one_line(capsys, monkeypatch):
+    """A Ctrl-C inside typer's building of the command (before click's own handling): it left a
+    traceback and a death by SIGINT (seen in CI, 1 s into a fit); now one line, exit 130."""
+    import fit.cli as cli
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "_command", interrupted)
+    code, _, stderr = run(["fit", "x.toml"], capsys)
+    assert code == 130 and stderr.strip() == "interrupted: stopped by Ctrl-C or SIGTERM"
