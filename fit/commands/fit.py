@@ -428,6 +428,12 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
             "geometric mean is 1), so its exposure is taken as declared; fit two or more views, "
             "or set gains = false"
         )
+    unused = sorted({"start_spread", "starts_spp"} & cfg.settings.model_fields_set)
+    if cfg.starts == 1 and unused and trace:  # multi-start settings for a single start
+        messages.append(
+            f"{cfg.path}: fit.{' and fit.'.join(unused)}: for a multi-start fit, and this one "
+            "has one start; remove it, or set fit.starts (or --starts) above 1"
+        )
     for k, phase in enumerate(cfg.phases):  # a gains option where no gain is fitted
         if not cfg.gains and "profile_gains" in phase.options.model_fields_set and trace:
             messages.append(

@@ -1988,7 +1988,7 @@ def test_a_diligent_name_without_its_image_is_said_not_dropped(base, tmp_path):
 def test_gains_with_one_fitted_view_are_said_to_do_nothing(base, tmp_path, capsys, caplog):
     """fit.gains with a single fitted view: its gain is pinned at 1 by the gains' geometric
     mean, so the option did nothing, silently; now one warning names it and the way out. So
-    does a phase's profile_gains given where no gain is fitted."""
+    does a phase's profile_gains given where no gain is fitted, and start_spread for one start."""
     work = tmp_path / "w"
     shutil.copytree(base, work)
     edit(work / "fit.toml", "uncertainty_spp = 4\n", 'uncertainty_spp = 4\ngains = "exposure"\n')
@@ -2002,6 +2002,12 @@ def test_gains_with_one_fitted_view_are_said_to_do_nothing(base, tmp_path, capsy
     code, _, stderr = run(["fit", work / "fit.toml", "--out", work / "run2"], capsys)
     assert code == 0, stderr
     assert "fit.phases[0].profile_gains: no gains are fitted" in " ".join(caplog.text.split())
+    edit(work / "fit.toml", "uncertainty_spp = 4\n", "uncertainty_spp = 4\nstart_spread = 2.0\n")
+    caplog.clear()
+    code, _, stderr = run(["fit", work / "fit.toml", "--out", work / "run3"], capsys)
+    assert code == 0, stderr
+    said = " ".join(caplog.text.split())
+    assert "fit.start_spread: for a multi-start fit, and this one has one start" in said
     summary = json.loads((work / "run" / "summary.json").read_text())
     assert any("fit.gains" in w for w in summary["capture_warnings"])
 
