@@ -210,6 +210,34 @@ def orientation_problem(spec) -> str | None:
     )
 
 
+#: Rec.709's primaries and white (x, y of red, green, blue, white): an image's colours are read
+#: as these.
+REC709_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
+
+
+def colour_space_problem(spec) -> str | None:
+    """Why an image whose file declares primaries other than Rec.709 is refused (None where it
+    declares Rec.709's or none): an EXR's `chromaticities` (ACEScg's AP1) or its
+    `colorInteropID` (Blender 5 writes `lin_ap1_scene` from an ACEScg working space) were read
+    as Rec.709 without a word, the colours and a peer's base_color truth in other primaries."""
+    declared = spec.getattribute("chromaticities")
+    if declared is not None and not np.allclose(declared, REC709_CHROMATICITIES, atol=5e-3):
+        shown = ", ".join(f"{c:.3f}" for c in declared)
+        return (
+            f"its chromaticities ({shown}) are not Rec.709's: its colours would be read in "
+            "other primaries; convert it to linear Rec.709 (e.g. oiiotool --colorconvert "
+            "ACEScg lin_rec709) or render with a Rec.709 working space"
+        )
+    interop = spec.get_string_attribute("colorInteropID")
+    if interop and "rec709" not in interop and interop != "data":
+        return (
+            f"its colour space is {interop!r}, not Rec.709: its colours would be read in other "
+            f"primaries; convert it to linear Rec.709 (e.g. oiiotool --colorconvert {interop} "
+            "lin_rec709_scene) or render with a Rec.709 working space"
+        )
+    return None
+
+
 def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """(linear RGB float32 (H, W, 3), saturated (H, W) bool, warnings) of an image file.
 
@@ -238,9 +266,9 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
         )
     spec = buf.spec()
     buf.close()
-    turned = orientation_problem(spec)
-    if turned is not None:
-        raise CaptureError(f"{path}: {turned}")
+    for problem in (orientation_problem(spec), colour_space_problem(spec)):
+        if problem is not None:
+            raise CaptureError(f"{path}: {problem}")
     chosen = colour_channels(list(spec.channelnames))
     if isinstance(chosen, str):
         raise CaptureError(f"{path}: {chosen}")

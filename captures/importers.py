@@ -52,8 +52,10 @@ def peer_capture(scene_json: str | Path) -> Capture:
             )
         if image.shape[:2] != (camera.height, camera.width):
             raise CaptureError(
-                f"{path}: {image.shape[1]}x{image.shape[0]} but scene.json says "
-                f"{camera.width}x{camera.height}"
+                f"{scene_json}: views[{i}]: {Path(path).name} is {image.shape[1]}x"
+                f"{image.shape[0]} but width and height say {camera.width}x{camera.height}; "
+                "give the image's size (a render at another resolution percentage, or cropped, "
+                "or with overscan, is not the camera's view)"
             )
         # the object's pixels: any that differ from the constant environment (any coverage), by
         # more than a code value of an integer file (its background varies by its rounding)
@@ -71,6 +73,14 @@ def peer_capture(scene_json: str | Path) -> Capture:
     if not isinstance(material, dict):
         raise CaptureError(
             f"{scene_json}: material is {type(material).__name__}; give a table of its values"
+        )
+    read = ("model", "base_color", "specular_roughness", "ior", "diffuse_roughness")
+    extra = sorted(k for k in material if k not in read)
+    if extra:  # another exporter's inputs (a Principled BSDF's coat, specular level): not scored
+        warnings.append(
+            f"{scene_json}: material has field(s) {', '.join(map(repr, extra))} this version "
+            f"does not read: ignored, though they may change the picture (it reads "
+            f"{', '.join(read)}); the truth is scored as if they were absent"
         )
     truth, missing = {}, []
     for key, name, size, low, high in (

@@ -40,9 +40,17 @@ def load_peer_scene(path: str | Path) -> Scene:
     """
     path = Path(path)
     try:
-        doc = json.loads(path.read_text(encoding="utf-8-sig"))
+        raw = path.read_bytes()
     except FileNotFoundError:
         raise CaptureError(f"{path}: no such file") from None
+    if raw[:2] in (b"\xff\xfe", b"\xfe\xff") or (len(raw) > 1 and b"\x00" in raw[:4]):
+        raise CaptureError(  # PowerShell's default ("Unicode"): a decode error said nothing
+            f"{path}: is UTF-16 text; save it as UTF-8 (e.g. Out-File -Encoding utf8)"
+        )
+    try:
+        doc = json.loads(raw.decode("utf-8-sig"))
+    except UnicodeDecodeError as err:
+        raise CaptureError(f"{path}: is not UTF-8 text ({err.reason}); save it as UTF-8") from None
     except json.JSONDecodeError as err:
         raise CaptureError(f"{path}: not valid JSON ({err})") from None
 
@@ -68,6 +76,12 @@ def load_peer_scene(path: str | Path) -> Scene:
     if not isinstance(views, list) or not views:
         raise CaptureError(f"{path}: views must be a list of one or more views")
     keys = ("origin", "target", "up", "fov_x_deg", "width", "height")
+    for i, view in enumerate(views):  # another exporter's vertical field of view
+        if isinstance(view, dict) and "fov_x_deg" not in view and "fov_y_deg" in view:
+            raise CaptureError(
+                f"{path}: views[{i}] has fov_y_deg but no fov_x_deg; give the horizontal field "
+                "of view, fov_x = 2 atan(tan(fov_y / 2) width / height)"
+            )
     cameras = [{k: field(view, k, f"views[{i}]") for k in keys} for i, view in enumerate(views)]
     for camera in cameras:  # a script's computed size (160.0) is a whole number of pixels
         for k in ("width", "height"):
@@ -80,7 +94,7 @@ def load_peer_scene(path: str | Path) -> Scene:
             raise CaptureError(
                 f"{path}: views[{i}].image is {json.dumps(name)}; give the view's image file name"
             )
-        images.append(path.parent / name)
+        images.append(path.parent / _forward(name))
     for i, view in enumerate(views):
         unknown(view, VIEW_FIELDS, f"views[{i}]")
     lights = doc.get("lights", [])
@@ -102,7 +116,7 @@ def load_peer_scene(path: str | Path) -> Scene:
         table = {k: field(light, k, f"lights[{i}]") for k in keys}
         radiance = field(light, "radiance_rgb", f"lights[{i}]")
         tables.append({"type": "rectangle", **table, "radiance": radiance})
-    name = str(field(doc, "mesh", "the file"))
+    name = _forward(str(field(doc, "mesh", "the file")))
     if not (path.parent / name).is_file():
         raise CaptureError(f"{path}: mesh {name!r} does not exist next to it")
     if "environment_radiance_rgb" not in doc:
@@ -144,3 +158,9 @@ def _peer_names(message: str) -> str:
     ):
         message = message.replace(ours, theirs)
     return message
+
+
+def _forward(name: str) -> str:
+    """A relative path written on Windows (`renders\\view_00.exr`) with forward slashes: a
+    backslash is a character of a file name here, and the file was "not found"."""
+    return name.replace("\\", "/") if "\\" in name and not Path(name).is_absolute() else name

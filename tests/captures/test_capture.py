@@ -849,3 +849,63 @@ def test_a_cut_out_mask_is_read_from_its_alpha(tmp_path):
     other = np.dstack([np.repeat(~disc[..., None], 3, 2), disc]).astype(np.float32)
     with pytest.raises(CaptureError, match="colour and its alpha channel draw different"):
         read_mask(_oiio_write(tmp_path / "o.png", other, oiio.UINT8))
+
+
+def test_another_exporters_peer_scene_is_read_or_named(tmp_path):
+    """What another exporter writes (helper-33's audit): a Windows path (`renders\\view.exr`,
+    refused as "no such image file"), a material with inputs this version does not read (a
+    coat: silently scored as if absent; now a warning), a vertical field of view only, a render
+    at another size (the error named neither the field nor the fix), UTF-16 text (a decode
+    error)."""
+    from captures.peer import load_peer_scene
+
+    path = _peer_folder(tmp_path / "peer", "renders\\view_00.exr", {"base_color": [0.5] * 3})
+    (tmp_path / "peer" / "renders").mkdir()
+    write_image(tmp_path / "peer" / "renders" / "view_00.exr", np.full((6, 8, 3), 0.2, np.float32))
+    doc = json.loads(path.read_text())
+    doc["material"]["coat_weight"] = 0.5
+    path.write_text(json.dumps(doc))
+    capture = peer_capture(path)
+    assert capture.views[0].image.shape == (6, 8, 3)
+    assert any("material has field(s) 'coat_weight'" in w for w in capture.warnings)
+    _view(doc).update(width=16, height=12)
+    path.write_text(json.dumps(doc))
+    with pytest.raises(CaptureError, match=r"views\[0\]: view_00.exr is 8x6 but width and height"):
+        peer_capture(path)
+    _view(doc).update(width=8, height=6, fov_y_deg=30)
+    del _view(doc)["fov_x_deg"]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(CaptureError, match=r"views\[0\] has fov_y_deg but no fov_x_deg"):
+        load_peer_scene(path)
+    path.write_text(json.dumps(doc), encoding="utf-16")
+    with pytest.raises(CaptureError, match="is UTF-16 text; save it as UTF-8"):
+        load_peer_scene(path)
+
+
+@pytest.mark.parametrize(
+    "attribute, value",
+    [
+        ("colorInteropID", "lin_ap1_scene"),
+        ("chromaticities", (0.713, 0.293, 0.165, 0.830, 0.128, 0.044, 0.32168, 0.33767)),
+    ],
+)
+def test_an_image_in_other_primaries_is_refused(tmp_path, attribute, value):
+    """An EXR declaring ACEScg's primaries (Blender 5 from an ACEScg working space) was read as
+    Rec.709 without a word; now refused with the conversion. Rec.709's own declaration reads."""
+    import OpenImageIO as oiio
+
+    pixels = np.full((6, 8, 3), 0.2, np.float32)
+    if attribute == "chromaticities":
+        spec_value = oiio.TypeDesc("float[8]"), value
+    else:
+        spec_value = (value,)
+    path = tmp_path / "v.exr"
+    spec = oiio.ImageSpec(8, 6, 3, oiio.FLOAT)
+    spec.attribute(attribute, *spec_value)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec) and out.write_image(pixels)
+    out.close()
+    with pytest.raises(CaptureError, match=r"not Rec\.709"):
+        read_linear(path, "linear")
+    rec709 = _oiio_write(tmp_path / "r.exr", pixels, oiio.FLOAT, colorInteropID="lin_rec709_scene")
+    assert read_linear(rec709, "linear")[0].shape == (6, 8, 3)
