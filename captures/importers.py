@@ -43,6 +43,7 @@ def peer_capture(scene_json: str | Path) -> Capture:
     for i, (camera, path) in enumerate(zip(scene.cameras, scene.meta["images"], strict=True)):
         levels = _integer_levels(path)
         encoding = "linear" if levels is None else "srgb"
+        _check_opaque_film(path, f"{scene_json}: views[{i}]")
         image, saturated, warned = read_linear(path, encoding)
         warnings += warned
         if encoding == "srgb":
@@ -127,6 +128,36 @@ def peer_capture(scene_json: str | Path) -> Capture:
     for message in warnings:
         log.warning(message)
     return Capture(scene, views, truth, Path(scene_json), warnings, options)
+
+
+#: A peer view with alpha 0 on more than this share of its pixels was rendered on a transparent
+#: film: its background is not the environment the scene declares.
+TRANSPARENT_SHARE = 0.01
+
+
+def _check_opaque_film(path: Path, where: str) -> None:
+    """Refuse a view rendered with a transparent film (Blender: Render > Film > Transparent): its
+    background is black with alpha 0, not the declared environment, so the object's mask came
+    out wrong and the fit compared the environment with black (it warned only that alpha was
+    ignored, then of a poor silhouette overlap blaming the mesh's axes)."""
+    import OpenImageIO as oiio
+
+    reader = oiio.ImageInput.open(str(path))
+    if reader is None:
+        return  # `read_linear` names the problem
+    names = list(reader.spec().channelnames)
+    reader.close()
+    if "A" not in names:
+        return
+    k = names.index("A")
+    alpha = read_image(path, (k, k + 1))[..., 0]
+    share = float(np.mean(alpha <= 0.0))
+    if share > TRANSPARENT_SHARE:
+        raise CaptureError(
+            f"{where}: {path.name} has alpha 0 on {share:.0%} of its pixels: it was rendered "
+            "on a transparent film, so its background is not the scene's environment; render "
+            "it with the film opaque (Blender: Render > Film > Transparent off)"
+        )
 
 
 def _integer_levels(path: Path) -> int | None:

@@ -30,6 +30,24 @@ LIGHT_FIELDS = ("type", "center", "emit_direction", "u_axis", "v_axis", "size", 
 LIGHT_FIELDS += ("one_sided",)
 
 
+#: Fields another exporter may write that change the picture, by table (the file, a view, a
+#: light), with the values that do not (a perspective camera, no lens shift, a rectangle light
+#: that emits to its hemisphere, no map): any other value is refused (they were warned as
+#: ignored, and the fit went ahead).
+PICTURE_FIELDS = {
+    "the file": {"environment_map": lambda v: not v},
+    "views": {
+        "type": lambda v: str(v).lower() in ("persp", "perspective"),
+        "shift_x": lambda v: v == 0,
+        "shift_y": lambda v: v == 0,
+    },
+    "lights": {
+        "shape": lambda v: str(v).lower() in ("rectangle", "square"),
+        "spread_deg": lambda v: v == 180,
+    },
+}
+
+
 def load_peer_scene(path: str | Path) -> Scene:
     """Read a peer `scene.json`: cameras, rectangle lights, constant environment, mesh.
 
@@ -64,6 +82,16 @@ def load_peer_scene(path: str | Path) -> Scene:
     warnings = []
 
     def unknown(table, known: tuple, where: str) -> None:  # another exporter's extra fields
+        changing = PICTURE_FIELDS[where.split("[")[0]]  # ones that change the picture: refused
+        for key, harmless in changing.items():
+            if isinstance(table, dict) and key in table and not harmless(table[key]):
+                named = key if where == "the file" else f"{where}.{key}"
+                raise CaptureError(
+                    f"{path}: {named} = {json.dumps(table[key])} changes the picture and "
+                    "this version does not read it; render without it, or describe the scene "
+                    "as a capture.toml (orthographic cameras, principal points, point lights "
+                    "and environment maps are there)"
+                )
         extra = sorted(k for k in table if k not in known) if isinstance(table, dict) else []
         if extra:
             warnings.append(
@@ -105,7 +133,10 @@ def load_peer_scene(path: str | Path) -> Scene:
     for i, light in enumerate(lights):
         kind = field(light, "type", f"lights[{i}]")
         if kind != "rectangle":
-            raise CaptureError(f"{path}: lights[{i}].type = {kind!r}; only 'rectangle' is known")
+            raise CaptureError(
+                f"{path}: lights[{i}].type = {kind!r}; a peer scene's lights are rectangles: "
+                "describe the scene as a capture.toml for point and directional lights"
+            )
         unknown(light, LIGHT_FIELDS, f"lights[{i}]")
         if light.get("one_sided", True) is not True:
             raise CaptureError(

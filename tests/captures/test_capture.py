@@ -588,6 +588,11 @@ def _light(doc):
         ("view", {"up": [3, -3, 2]}, r"views\[0\]\.up: .* along the viewing"),
         ("view", {"width": 0}, r"views\[0\]\.width: got 0"),
         ("view", {"image": 5}, r"views\[0\]\.image is 5; give the view's image"),
+        ("view", {"type": "ORTHO"}, r'views\[0\]\.type = "ORTHO" changes the picture'),
+        ("view", {"shift_x": 0.1}, r"views\[0\]\.shift_x = 0.1 changes the picture"),
+        ("light", {"shape": "DISK"}, r'lights\[0\]\.shape = "DISK" changes the picture'),
+        ("light", {"type": "point"}, r"lights\[0\]\.type = 'point'; .* capture.toml"),
+        ("doc", {"environment_map": "env.exr"}, r'environment_map = "env.exr" changes the'),
         ("view", {"image": ""}, r'views\[0\]\.image is ""; give'),
         ("view", {"origin": [0.1, 0.1, 0.1]}, r"views\[0\]\.origin .* inside the object"),
         ("light", {"radiance_rgb": [-1, 1, 1]}, r"lights\[0\]\.radiance_rgb\[0\]: got -1"),
@@ -909,3 +914,20 @@ def test_an_image_in_other_primaries_is_refused(tmp_path, attribute, value):
         read_linear(path, "linear")
     rec709 = _oiio_write(tmp_path / "r.exr", pixels, oiio.FLOAT, colorInteropID="lin_rec709_scene")
     assert read_linear(rec709, "linear")[0].shape == (6, 8, 3)
+
+
+def test_a_peer_view_on_a_transparent_film_is_refused(tmp_path):
+    """A Cycles render with Film > Transparent (background RGB 0, alpha 0): its background is
+    not the declared environment; it was read with an "alpha ignored" warning and then a poor
+    silhouette overlap blamed on the mesh's axes. Opaque RGBA reads."""
+    import OpenImageIO as oiio
+
+    path = _peer_folder(tmp_path / "peer", "view_00.exr", {"base_color": [0.5] * 3})
+    rgba = np.zeros((6, 8, 4), np.float32)
+    rgba[2:4, 3:5] = 0.2, 0.2, 0.2, 1.0
+    _oiio_write(tmp_path / "peer" / "view_00.exr", rgba, oiio.FLOAT)
+    with pytest.raises(CaptureError, match=r"views\[0\]: view_00.exr has alpha 0 on 92%"):
+        peer_capture(path)
+    rgba[..., 3], rgba[..., :3] = 1.0, np.maximum(rgba[..., :3], 0.05)
+    _oiio_write(tmp_path / "peer" / "view_00.exr", rgba, oiio.FLOAT)
+    assert peer_capture(path).views[0].image.shape == (6, 8, 3)
