@@ -192,6 +192,7 @@ def _wait_for_step(checkpoint: Path, step: int, process: subprocess.Popen, timeo
     raise AssertionError("no checkpoint appeared")
 
 
+@pytest.mark.slow  # a timing stress test: which code a signal lands in varies with the machine
 @pytest.mark.parametrize("delay", [0.5, 1.0, 1.8, 2.6])  # after Python itself started
 def test_ctrl_c_while_starting_is_one_line_and_exit_130(tmp_path, delay):
     """A Ctrl-C in a fit's first seconds (imports, Mitsuba and JAX starting) stops it: exit 130,
@@ -199,7 +200,10 @@ def test_ctrl_c_while_starting_is_one_line_and_exit_130(tmp_path, delay):
     import's traceback (at 0.5 s), was swallowed by JAX's gc callback while the fit ran to its
     end (1.2-1.5 s), became "internal error (NameError)" inside Dr.Jit's import (2.5 s), or
     exited 130 silently; once a Dr.Jit import cut half-way aborted the interpreter. (Before
-    the entry point runs, in Python's own start, its default handler still prints one.)"""
+    the entry point runs, in Python's own start, its default handler still prints one.) In the
+    slow target: once in about 40 runs the process ended by SIGINT (-2) after it had said 130
+    (now exited through `fit.entry._exit_interrupted`, not reproduced since); the windows it
+    found are tested in the default run in-process (test_bad_inputs: the command's building)."""
     small_capture(tmp_path / "cap")
     (tmp_path / "fit.toml").write_text(RESUMABLE)
     out = tmp_path / "run"
