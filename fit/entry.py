@@ -86,8 +86,9 @@ def main() -> None:
 def _exit_interrupted() -> NoReturn:
     """Exit 130 after the exit handlers (Ray's shutdown among them), not through the
     interpreter's own end, which restores SIGINT's default action: the process once ended by
-    SIGINT (-2) after it had said "interrupted" and chosen 130 (a Ctrl-C 2.6 s into a fit, one
-    run in five); a native library's handler delivering the signal again is the suspect."""
+    SIGINT (-2) after it had said "interrupted" and chosen 130 (once in about 40 Ctrl-Cs early
+    in a fit, under load; not traced: a native library delivering the signal again is the
+    suspect)."""
     atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
