@@ -11,7 +11,7 @@ import numpy as np
 from .capture import Capture, View, check_valid, check_view_names, pixel_warnings
 from .errors import CaptureError
 from .geometry import block_normals, covered_blocks, covered_pixels, normal_map_mesh
-from .images import read_image, read_linear, read_mask, srgb_encode
+from .images import colour_channels, read_image, read_linear, read_mask, srgb_encode
 from .peer import load_peer_scene
 from .scene import Camera, DirectionalLight, MeshArrays, Scene, Sphere
 from .weights import validity
@@ -145,11 +145,11 @@ def _check_opaque_film(path: Path, where: str) -> None:
     reader = oiio.ImageInput.open(str(path))
     if reader is None:
         return  # `read_linear` names the problem
-    names = list(reader.spec().channelnames)
+    chosen = colour_channels(list(reader.spec().channelnames))  # a multi-layer file's pass too
     reader.close()
-    if "A" not in names:
+    if isinstance(chosen, str) or chosen[1] is None:
         return
-    k = names.index("A")
+    k = chosen[1]
     alpha = read_image(path, (k, k + 1))[..., 0]
     share = float(np.mean(alpha <= 0.0))
     if share > TRANSPARENT_SHARE:
