@@ -42,23 +42,20 @@ def open_capture(path: str | Path, downscale: int = 1, name: str | None = None) 
 def check_capture(path: str | Path) -> None:
     """What `open_capture` refuses of a capture's own file before reading any image: a file
     that is no capture, a manifest that is another kind of file (a fit config given as a
-    capture) or not valid TOML, a `scene.json` that is not JSON. A batch checks its captures so
-    before any fit starts (a folder without its file is left to the fit)."""
-    import json
-
+    capture) or not valid TOML, a `scene.json` its loader refuses (its images left unread). A
+    batch checks its captures so before any fit starts (a folder without its file is left to
+    the fit)."""
     from .capture import GIVE_A_CAPTURE
     from .model import expect_kind
+    from .peer import load_peer_scene
     from .schema import load_toml
 
     path = Path(path)
     if path.is_dir() and not any((path / n).exists() for n in ("capture.toml", "scene.json")):
         return
     kind, path = _kind(path)
-    if kind == "peer":
-        try:
-            json.loads(path.read_text(encoding="utf-8"))
-        except (OSError, ValueError) as err:
-            raise CaptureError(f"{path}: not a readable peer scene.json ({err}); fix it") from None
+    if kind == "peer":  # the loader's own checks (a byte-order mark read, UTF-16 named)
+        load_peer_scene(path)
     elif kind == "manifest":
         path = path / "capture.toml" if path.is_dir() else path
         expect_kind(

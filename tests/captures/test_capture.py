@@ -931,3 +931,17 @@ def test_a_peer_view_on_a_transparent_film_is_refused(tmp_path):
     rgba[..., 3], rgba[..., :3] = 1.0, np.maximum(rgba[..., :3], 0.05)
     _oiio_write(tmp_path / "peer" / "view_00.exr", rgba, oiio.FLOAT)
     assert peer_capture(path).views[0].image.shape == (6, 8, 3)
+
+
+def test_a_batchs_capture_check_reads_a_peer_scene_as_its_loader_does(tmp_path):
+    """`check_capture` (a batch's check before Ray) read scene.json itself as plain UTF-8: a
+    file with a byte-order mark, which the loader reads, was refused. It now calls the loader
+    (no image read); a broken one is refused with its reason."""
+    from captures.open import check_capture
+
+    path = _peer_folder(tmp_path / "peer", "view_00.exr", {"base_color": [0.5] * 3})
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    check_capture(tmp_path / "peer")  # no image on disk: not read
+    path.write_text("{", encoding="utf-8")
+    with pytest.raises(CaptureError, match="not valid JSON"):
+        check_capture(path)
