@@ -150,10 +150,9 @@ def at_bounds(free: list[Free], values: dict) -> list[dict]:
             continue
         x = np.atleast_1d(np.asarray(values[f.key], float))
         lo, hi = np.broadcast_to(spec.lower, x.shape), np.broadcast_to(spec.upper, x.shape)
-        if spec.transform == "log_sigmoid":
-            t = (np.log(np.maximum(x, 1e-300)) - np.log(lo)) / (np.log(hi) - np.log(lo))
-        else:
-            t = (x - lo) / (hi - lo)
+        # the share of the range (its transform's own: log space for scales), clipped by
+        # `to_unconstrained` at BOUND_MARGIN, which is inside AT_BOUND
+        t = 1.0 / (1.0 + np.exp(-spec.to_unconstrained(x)))
         for i, share in enumerate(t):
             if AT_BOUND < share < 1 - AT_BOUND:
                 continue
