@@ -32,16 +32,19 @@ def srgb_decode(encoded: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
 
 
-def read_image(path: str | Path, channels: tuple[int, int] | None = None) -> np.ndarray:
+def read_image(
+    path: str | Path, channels: tuple[int, int] | None = None, part: int = 0
+) -> np.ndarray:
     """Pixels as float32 (H, W, C) exactly as stored (no colour decoding): all channels, or
-    those from `channels[0]` up to `channels[1]` (a multi-layer file's passes left unread)."""
+    those from `channels[0]` up to `channels[1]` (a multi-layer file's passes left unread), of
+    the file's `part` (a multi-part EXR's; `image_part`), over its display window."""
     path = Path(path)
     require_utf8(path, CaptureError)
     if not path.exists():
         raise CaptureError(f"{path}: no such image file; check the path")
     if path.is_dir():
         raise CaptureError(f"{path}: is a folder, not an image; give an image file")
-    pixels, problem = _decode(path, channels)
+    pixels, problem = _decode(path, channels, part)
     if problem is not None:
         raise CaptureError(f"{path}: {problem}")
     return pixels
@@ -73,24 +76,29 @@ def _c_stderr_silenced():
 
 
 def _decode(
-    path: Path, channels: tuple[int, int] | None = None
+    path: Path, channels: tuple[int, int] | None = None, part: int = 0
 ) -> tuple[np.ndarray | None, str | None]:
-    """The pixels as float32 (H, W, C) (of `channels`, a range, where given), or why they
-    cannot be read (one line)."""
+    """The pixels as float32 (H, W, C) of the file's `part` over its display window (of
+    `channels`, a range, where given), or why they cannot be read (one line)."""
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)  # colours as stored, not times alpha
     with _c_stderr_silenced():
-        buf = oiio.ImageBuf(str(path), 0, 0, config)
+        buf = oiio.ImageBuf(str(path), part, 0, config)
         opened = not buf.has_error
-        pixels = None
+        pixels, cropped = None, None
         if opened:
-            roi = buf.roi
-            if channels is not None:
-                roi = oiio.ROI(roi.xbegin, roi.xend, roi.ybegin, roi.yend, 0, 1, *channels)
-            pixels = buf.get_pixels(oiio.FLOAT, roi)
+            cropped = window_problem(buf.roi, buf.roi_full)
+            roi = buf.roi_full  # an overscan's pixels beyond the frame left out
+            if channels is None:
+                channels = (roi.chbegin, roi.chend)
+            roi = oiio.ROI(roi.xbegin, roi.xend, roi.ybegin, roi.yend, 0, 1, *channels)
+            if cropped is None:
+                pixels = buf.get_pixels(oiio.FLOAT, roi)
     if not opened:
         oiio.geterror()  # the same error, pending globally: cleared
         return None, f"cannot read image ({_first_line(buf.geterror())}); convert it"
+    if cropped is not None:
+        return None, cropped
     if pixels is None or buf.has_error:
         oiio.geterror()
         return None, (
@@ -98,6 +106,68 @@ def _decode(
             "or corrupt; copy or export it again"
         )
     return np.asarray(pixels, dtype=np.float32), None
+
+
+def window_problem(data, display) -> str | None:
+    """Why an image whose pixels (its data window, an OpenImageIO ROI) do not cover its frame
+    (its display window) is refused, None where they do. A render region or an autocropped EXR
+    stores only part of the frame: the rest is not black, it was not rendered (it was reported
+    as an image of another size than the camera's). An overscan, pixels beyond the frame, is
+    read over the frame."""
+    if (
+        data.xbegin <= display.xbegin
+        and data.ybegin <= display.ybegin
+        and data.xend >= display.xend
+        and data.yend >= display.yend
+    ):
+        return None
+    return (
+        f"holds pixels only in x {data.xbegin}..{data.xend - 1}, y {data.ybegin}..{data.yend - 1} "
+        f"of its {display.width}x{display.height} frame (a render region, a crop or an "
+        "autocropped EXR); save or render the whole frame"
+    )
+
+
+def image_part(path: str | Path) -> tuple[int, object, str | None]:
+    """(the part of an image file that holds its colour, that part's ImageSpec, a warning or
+    None): the first of a multi-part EXR's parts with R, G and B (`colour_channels`), part 0
+    where none has them (one part: part 0). A depth part first was read as a grey image. Raises
+    `CaptureError` where OpenImageIO cannot open the file."""
+    path = Path(path)
+    reader = oiio.ImageInput.open(str(path))
+    if reader is None:
+        raise CaptureError(
+            f"{path}: not an image OpenImageIO can read ({oiio.geterror().strip()}); convert it "
+            "to EXR, PNG or TIFF"
+        )
+    specs = []
+    while reader.seek_subimage(len(specs), 0):
+        specs.append(reader.spec())
+    reader.close()
+    oiio.geterror()  # a failed seek past the last part leaves an error pending
+    if len(specs) < 2:
+        return 0, specs[0], None
+
+    def rgb(spec) -> bool:
+        chosen = colour_channels(list(spec.channelnames))
+        return not isinstance(chosen, str) and len(chosen[0]) == 3
+
+    coloured = [i for i, spec in enumerate(specs) if rgb(spec)]
+    if not coloured or coloured[0] == 0:
+        return 0, specs[0], None
+
+    def name(i: int) -> str:
+        return specs[i].get_string_attribute("name") or f"part {i}"
+
+    k = coloured[0]
+    parts = ", ".join(
+        f"'{name(i)}' ({', '.join(spec.channelnames)})" for i, spec in enumerate(specs)
+    )
+    return (
+        k,
+        specs[k],
+        f"{path}: a multi-part file ({parts}): read '{name(k)}', its first colour part",
+    )
 
 
 def write_image(path: str | Path, linear: np.ndarray) -> Path:
@@ -256,16 +326,10 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
         return develop(raw), raw.saturated, []
     if path.is_dir():
         raise CaptureError(f"{path}: is a folder, not an image; give an image file")
-    buf = oiio.ImageInput.open(str(path)) if path.exists() else None
-    if buf is None:
-        if not path.exists():
-            raise CaptureError(f"{path}: no such image file; check the path")
-        raise CaptureError(
-            f"{path}: not an image OpenImageIO can read ({oiio.geterror().strip()}); convert it "
-            "to EXR, PNG or TIFF"
-        )
-    spec = buf.spec()
-    buf.close()
+    if not path.exists():
+        raise CaptureError(f"{path}: no such image file; check the path")
+    part, spec, note = image_part(path)
+    warnings: list[str] = [] if note is None else [note]
     for problem in (orientation_problem(spec), colour_space_problem(spec)):
         if problem is not None:
             raise CaptureError(f"{path}: {problem}")
@@ -275,8 +339,7 @@ def read_linear(path: str | Path, encoding: str) -> tuple[np.ndarray, np.ndarray
     used = [*chosen[0], *([] if chosen[1] is None else [chosen[1]])]
     first = min(used)  # read from the first channel used to the last
     colour, alpha = [i - first for i in chosen[0]], None if chosen[1] is None else chosen[1] - first
-    pixels = read_image(path, (first, max(used) + 1))
-    warnings: list[str] = []
+    pixels = read_image(path, (first, max(used) + 1), part)
     integer = spec.format.basetype in (oiio.UINT8, oiio.UINT16, oiio.UINT32)
     if alpha is not None:  # an alpha channel: the colours are read as stored, alpha dropped
         seethrough = int(np.count_nonzero(pixels[..., alpha] < 1.0))
@@ -320,11 +383,9 @@ def read_mask(path: str | Path) -> np.ndarray:
     value is below 0.5, e.g. stored as codes 0 and 1, at half its brightest). A cut-out whose
     colour is flat is read from its alpha (it was ignored: the whole frame the object); one
     whose colour and alpha disagree is refused."""
-    pixels = read_image(path)
-    reader = oiio.ImageInput.open(str(path))  # read above: it opens
-    spec = reader.spec()
+    part, spec, _ = image_part(path) if Path(path).is_file() else (0, None, None)
+    pixels = read_image(path, part=part)  # (names the problem of a file that is not there)
     chosen = colour_channels(list(spec.channelnames))
-    reader.close()
     turned = orientation_problem(spec)
     if turned is not None:
         raise CaptureError(f"{path}: {turned}")

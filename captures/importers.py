@@ -11,7 +11,14 @@ import numpy as np
 from .capture import Capture, View, check_valid, check_view_names, pixel_warnings
 from .errors import CaptureError
 from .geometry import block_normals, covered_blocks, covered_pixels, normal_map_mesh
-from .images import colour_channels, read_image, read_linear, read_mask, srgb_encode
+from .images import (
+    colour_channels,
+    image_part,
+    read_image,
+    read_linear,
+    read_mask,
+    srgb_encode,
+)
 from .peer import load_peer_scene
 from .scene import Camera, DirectionalLight, MeshArrays, Scene, Sphere
 from .weights import validity
@@ -140,17 +147,15 @@ def _check_opaque_film(path: Path, where: str) -> None:
     background is black with alpha 0, not the declared environment, so the object's mask came
     out wrong and the fit compared the environment with black (it warned only that alpha was
     ignored, then of a poor silhouette overlap blaming the mesh's axes)."""
-    import OpenImageIO as oiio
-
-    reader = oiio.ImageInput.open(str(path))
-    if reader is None:
+    try:
+        part, spec, _ = image_part(path)
+    except CaptureError:
         return  # `read_linear` names the problem
-    chosen = colour_channels(list(reader.spec().channelnames))  # a multi-layer file's pass too
-    reader.close()
+    chosen = colour_channels(list(spec.channelnames))  # a multi-layer file's pass too
     if isinstance(chosen, str) or chosen[1] is None:
         return
     k = chosen[1]
-    alpha = read_image(path, (k, k + 1))[..., 0]
+    alpha = read_image(path, (k, k + 1), part)[..., 0]
     share = float(np.mean(alpha <= 0.0))
     if share > TRANSPARENT_SHARE:
         raise CaptureError(

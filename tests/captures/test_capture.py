@@ -201,6 +201,97 @@ def test_an_exr_without_one_rgb_image_is_refused_by_name(tmp_path, names, messag
         read_linear(path, "linear")
 
 
+def _parts(path: Path, parts: list[tuple[str, list[str]]], alpha: float | None = None) -> Path:
+    """A multi-part 4x3 EXR: each (name, channels) part's channel k holds 10 x part + k + 1, an
+    A channel `alpha` where given."""
+    import OpenImageIO as oiio
+
+    specs = []
+    for name, names in parts:
+        spec = oiio.ImageSpec(4, 3, len(names), oiio.FLOAT)
+        spec.channelnames = names
+        spec.attribute("name", name)
+        specs.append(spec)
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), specs)
+    for i, (spec, (_, names)) in enumerate(zip(specs, parts, strict=True)):
+        if i:
+            out.open(str(path), spec, "AppendSubimage")
+        values = 10 * i + np.arange(1, len(names) + 1, dtype=np.float32)
+        if alpha is not None and "A" in names:
+            values[names.index("A")] = alpha
+        out.write_image(np.ascontiguousarray(np.broadcast_to(values, (3, 4, len(names)))))
+    out.close()
+    return path
+
+
+@pytest.mark.parametrize(
+    "parts, expected, warned",
+    [
+        ([("rgba", ["R", "G", "B", "A"]), ("depth", ["Z"])], [1, 2, 3], False),
+        ([("depth", ["Z"]), ("rgba", ["R", "G", "B"])], [11, 12, 13], True),
+        ([("depth", ["Z"]), ("normal", ["N.X", "N.Y", "N.Z"]), ("beauty", ["R", "G", "B"])],
+         [21, 22, 23], True),
+    ],
+)  # fmt: skip
+def test_a_multi_part_exrs_colour_part_is_read(tmp_path, parts, expected, warned):
+    """A multi-part EXR (Nuke, Houdini, another exporter) was read from its first part alone:
+    a depth part first was the image, grey, without a word. Its first colour part is read, and
+    where that is not the first, a warning names it."""
+    pixels, _, warnings = read_linear(_parts(tmp_path / "t.exr", parts), "linear")
+    np.testing.assert_array_equal(pixels[1, 2], np.asarray(expected, np.float32))
+    assert bool(warnings) == warned
+    if warned:
+        assert "a multi-part file" in warnings[0] and "'depth' (Z)" in warnings[0]
+
+
+@pytest.mark.parametrize("alpha, refused", [(1.0, False), (0.0, True)])
+def test_the_film_check_reads_the_colour_parts_alpha(tmp_path, alpha, refused):
+    """The transparent-film check reads the alpha of the part the colour comes from."""
+    from captures.importers import _check_opaque_film
+
+    parts = [("depth", ["Z"]), ("rgba", ["R", "G", "B", "A"])]
+    path = _parts(tmp_path / "t.exr", parts, alpha)
+    if not refused:
+        _check_opaque_film(path, "view")
+        return
+    with pytest.raises(CaptureError, match="alpha 0 on 100% of its pixels"):
+        _check_opaque_film(path, "view")
+
+
+def _windowed(path: Path, data: tuple[int, int, int, int]) -> Path:
+    """An 8x6 frame (display window) whose stored pixels are `data` (x, y, width, height), each
+    holding its frame coordinates (x, y, 0)."""
+    import OpenImageIO as oiio
+
+    x0, y0, w, h = data
+    spec = oiio.ImageSpec(w, h, 3, oiio.FLOAT)
+    spec.x, spec.y, spec.full_x, spec.full_y, spec.full_width, spec.full_height = x0, y0, 0, 0, 8, 6
+    ys, xs = np.mgrid[y0 : y0 + h, x0 : x0 + w].astype(np.float32)
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), spec)
+    out.write_image(np.ascontiguousarray(np.stack([xs, ys, np.zeros_like(xs)], -1)))
+    out.close()
+    return path
+
+
+def test_an_overscan_exr_is_read_over_its_frame(tmp_path):
+    """Pixels rendered beyond the frame (overscan) were reported as an image of another size;
+    the frame is read, each pixel where it is."""
+    pixels, _, _ = read_linear(_windowed(tmp_path / "o.exr", (-2, -1, 12, 8)), "linear")
+    assert pixels.shape == (6, 8, 3)
+    np.testing.assert_array_equal(pixels[4, 5], [5, 4, 0])
+    np.testing.assert_array_equal(pixels[0, 0], [0, 0, 0])
+
+
+@pytest.mark.parametrize("data", [(1, 1, 6, 4), (0, 0, 8, 5), (2, 0, 8, 6)])
+def test_an_exr_holding_part_of_its_frame_is_refused(tmp_path, data):
+    """A render region or an autocropped EXR stores part of the frame; the rest was not
+    rendered (it was reported as an image of another size than the camera's)."""
+    with pytest.raises(CaptureError, match=r"o\.exr: holds pixels only in x .* of its 8x6 frame"):
+        read_linear(_windowed(tmp_path / "o.exr", data), "linear")
+
+
 def test_validity_weights():
     image = np.full((20, 20, 3), 0.5, np.float32)
     image[2, 2] = np.nan
