@@ -7,6 +7,8 @@ import re
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from .errors import CaptureError
 from .scene import Scene
 from .schema import parse_scene
@@ -115,6 +117,10 @@ def load_peer_scene(path: str | Path) -> Scene:
         for k in ("width", "height"):
             if isinstance(camera[k], float) and camera[k].is_integer():
                 camera[k] = int(camera[k])
+    for i, view in enumerate(views):
+        problem = _matrix_problem(view.get("blender_matrix_world"), cameras[i])
+        if problem is not None:
+            raise CaptureError(f"{path}: views[{i}].blender_matrix_world {problem}")
     images = []
     for i, view in enumerate(views):
         name = field(view, "image", f"views[{i}]")
@@ -167,11 +173,63 @@ def load_peer_scene(path: str | Path) -> Scene:
         "environment": environment,
     }
     try:
-        scene = parse_scene(table, path)
+        scene = parse_scene(table, path, _peer_names)
     except CaptureError as err:
         raise CaptureError(_peer_names(str(err))) from None
     meta = {"material": doc.get("material", {}), "images": images, "warnings": warnings}
     return replace(scene, meta=meta)
+
+
+#: How far a view's `blender_matrix_world` may be from its origin (a fraction of the distance to
+#: its target) and its axes from its look-at frame (degrees) before they disagree: the exporter
+#: writes both from one camera, in float32.
+MATRIX_POSITION, MATRIX_DEGREES = 1e-3, 0.1
+
+
+def _matrix_problem(matrix, camera: dict) -> str | None:
+    """Why a view's Blender camera matrix (world from camera: its columns the camera's x, y (up)
+    and z (backward) axes and its position) disagrees with its origin, target and up (None
+    where it agrees or is absent, or where those are not numbers: the scene's checks name
+    them). A matrix left from another camera was silent, and the look-at values were used."""
+    if matrix is None:
+        return None
+    try:
+        m = np.asarray(matrix, np.float64)
+    except (TypeError, ValueError):
+        m = None
+    if m is None or m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        return f"= {json.dumps(matrix)[:80]}: expected a 4x4 matrix (rows of 4 numbers)"
+    try:
+        origin, target, up = (np.asarray(camera[k], np.float64) for k in ("origin", "target", "up"))
+    except (TypeError, ValueError):
+        return None
+    if not all(v.shape == (3,) and np.all(np.isfinite(v)) for v in (origin, target, up)):
+        return None
+    forward = target - origin
+    upright = up - (up @ forward) / max(forward @ forward, 1e-300) * forward  # look-at's up
+    found = []
+    if np.linalg.norm(m[:3, 3] - origin) > MATRIX_POSITION * np.linalg.norm(forward):
+        shown = ", ".join(f"{x:.4g}" for x in m[:3, 3])
+        found.append(f"puts the camera at [{shown}], not at origin")
+    look, roll = _degrees(-m[:3, 2], forward), _degrees(m[:3, 1], upright)
+    if look > MATRIX_DEGREES:
+        found.append(f"looks {look:.2f} degrees away from target")
+    elif roll > MATRIX_DEGREES:
+        found.append(f"turns the camera {roll:.2f} degrees about its view from up")
+    if not found:
+        return None
+    return (
+        f"{' and '.join(found)}: the two describe different cameras; export them from one "
+        "camera again, or drop blender_matrix_world (origin, target and up are read)"
+    )
+
+
+def _degrees(a: np.ndarray, b: np.ndarray) -> float:
+    """The angle between two vectors (0 where either is zero: the scene's checks name it)."""
+    norms = np.linalg.norm(a) * np.linalg.norm(b)
+    if not norms > 0:
+        return 0.0
+    return float(np.degrees(np.arccos(np.clip(a @ b / norms, -1.0, 1.0))))
 
 
 def _peer_names(message: str) -> str:

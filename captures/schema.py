@@ -34,6 +34,7 @@ from __future__ import annotations
 import logging
 import math
 import tomllib
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 from typing import Annotated, ClassVar, Literal
@@ -554,8 +555,34 @@ class SceneSpec(StrictModel):
 FAR_FROM_ORIGIN = 1e4
 
 
-def parse_scene(data: dict, file: Path) -> Scene:
-    """A `Scene` from the `[scene]` table of `file` (relative paths resolve against its folder)."""
+#: A perspective camera whose field of view in degrees is at most pi, and whose object spans
+#: more than this many times it, has probably been given its field of view in radians.
+RADIANS_SPAN = 3.0
+
+
+def radians_note(camera, center, radius: float) -> str | None:
+    """Why a camera's field of view looks like radians given as degrees (None where it does
+    not): at most pi, with the object (its bounding sphere) spanning `RADIANS_SPAN` times it or
+    more, so the view sees a small piece of it. Blender's Python gives `camera.data.angle` in
+    radians; 0.846 was taken as 0.846 degrees and only the silhouette's overlap warned."""
+    if camera.kind != "perspective" or camera.fov_x_deg > np.pi:
+        return None
+    distance = float(np.linalg.norm(np.subtract(camera.origin, center)))
+    if distance <= radius:
+        return None
+    span = 2.0 * np.degrees(np.arcsin(radius / distance))
+    if span < RADIANS_SPAN * camera.fov_x_deg:
+        return None
+    return (
+        f"a field of view of {camera.fov_x_deg:g} degrees sees a small piece of the object "
+        f"(it spans {span:.3g} degrees from this camera); if the value is in radians, give "
+        f"{np.degrees(camera.fov_x_deg):.4g} (degrees)"
+    )
+
+
+def parse_scene(data: dict, file: Path, names: Callable[[str], str] = str) -> Scene:
+    """A `Scene` from the `[scene]` table of `file` (relative paths resolve against its folder),
+    its warnings' field names passed through `names` (a peer file's own)."""
     scene = parse_model(SceneSpec, data, file, "scene").build()
     center, radius = bounding_sphere(scene.geometry)
     reach = float(np.max(np.abs(center)) + radius)
@@ -568,6 +595,11 @@ def parse_scene(data: dict, file: Path) -> Scene:
             "from the mesh's vertices, the cameras' origins and targets and the lights' "
             "positions)"
         )
+    for i, camera in enumerate(scene.cameras):
+        note = radians_note(camera, center, radius)
+        if note is not None:
+            message = f"{file}: scene.cameras[{i}].fov_x_deg = {camera.fov_x_deg:g}: {note}"
+            log.warning(names(message))
     # the cameras' origins and the lights' positions, each with its field (one mesh read)
     where = [(f"cameras[{i}].origin", c.origin) for i, c in enumerate(scene.cameras)]
     for i, light in enumerate(scene.lights):

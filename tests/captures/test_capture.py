@@ -1036,3 +1036,78 @@ def test_a_batchs_capture_check_reads_a_peer_scene_as_its_loader_does(tmp_path):
     path.write_text("{", encoding="utf-8")
     with pytest.raises(CaptureError, match="not valid JSON"):
         check_capture(path)
+
+
+def _look_at_matrix(origin, target, up) -> list[list[float]]:
+    """Blender's `matrix_world` of a camera at `origin` looking at `target`: columns x, y (up),
+    z (backward) and the position."""
+    back = np.subtract(origin, target, dtype=float)
+    back /= np.linalg.norm(back)
+    x = np.cross(up, back)
+    x /= np.linalg.norm(x)
+    matrix = np.eye(4)
+    matrix[:3, 0], matrix[:3, 1], matrix[:3, 2], matrix[:3, 3] = x, np.cross(back, x), back, origin
+    return matrix.tolist()
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (None, None),
+        ({"origin": [3, -3, 2.5]}, r"puts the camera at \[3, -3, 2.5\], not at origin"),
+        ({"target": [0.5, 0, 0]}, r"looks 5\.03 degrees away from target"),
+        ({"up": [0.3, 0, 1]}, r"turns the camera \d+\.\d\d degrees about its view"),
+        ("rows", r"= \[\[1, 0\], \[0, 1\]\]: expected a 4x4 matrix"),
+    ],
+)
+def test_a_peer_views_camera_matrix_must_agree_with_its_look_at(tmp_path, change, message):
+    """`blender_matrix_world` was listed as read but not read: a matrix of another camera (a
+    stale export) beside the look-at values was silent. A disagreeing one is refused by what
+    differs; an agreeing one reads."""
+    from captures.peer import load_peer_scene
+
+    path = _peer_folder(tmp_path / "peer", "view_00.exr", {"base_color": [0.5] * 3})
+    doc = json.loads(path.read_text())
+    view = _view(doc)
+    moved = {**view, **change} if isinstance(change, dict) else view
+    matrix = _look_at_matrix(moved["origin"], moved["target"], moved["up"])
+    view["blender_matrix_world"] = [[1, 0], [0, 1]] if change == "rows" else matrix
+    path.write_text(json.dumps(doc))
+    if message is None:
+        load_peer_scene(path)
+        return
+    with pytest.raises(CaptureError, match=r"views\[0\]\.blender_matrix_world " + message):
+        load_peer_scene(path)
+
+
+@pytest.mark.parametrize("fov, warned", [(40, False), (0.698, True), (2.0, True)])
+def test_a_field_of_view_in_radians_is_warned(tmp_path, caplog, fov, warned):
+    """A field of view given in radians (Blender's `camera.data.angle`) was taken as degrees:
+    0.698 saw a sliver of the object and only the silhouette's overlap warned. Where the object
+    spans three times the value or more, the warning gives the value in degrees."""
+    from captures.peer import load_peer_scene
+
+    path = _peer_folder(tmp_path / "peer", "view_00.exr", {"base_color": [0.5] * 3})
+    doc = json.loads(path.read_text())
+    _view(doc)["fov_x_deg"] = fov
+    path.write_text(json.dumps(doc))
+    with caplog.at_level(logging.WARNING):
+        load_peer_scene(path)
+    notes = [r.getMessage() for r in caplog.records if "in radians" in r.getMessage()]
+    assert bool(notes) == warned
+    if warned:
+        assert f"views[0].fov_x_deg = {fov:g}" in notes[0]
+        assert f"give {np.degrees(fov):.4g} (degrees)" in notes[0]
+
+
+def test_a_telephoto_view_of_a_far_object_is_not_warned(tmp_path, caplog):
+    """A narrow field of view that frames the object (a long lens far away) is not radians."""
+    from captures.peer import load_peer_scene
+
+    path = _peer_folder(tmp_path / "peer", "view_00.exr", {"base_color": [0.5] * 3})
+    doc = json.loads(path.read_text())
+    _view(doc).update(origin=[300, -300, 200], fov_x_deg=0.5)
+    path.write_text(json.dumps(doc))
+    with caplog.at_level(logging.WARNING):
+        load_peer_scene(path)
+    assert not [r for r in caplog.records if "in radians" in r.getMessage()]
