@@ -499,6 +499,7 @@ def shading_warnings(
     a, b = corners, corners[following]
     keep = a != b
     out = []
+    textured = texcoords is not None and bool(np.any(texcoords >= 0))
     if not (has_normals or face_normals):  # shaded by normals interpolated over shared vertices
         t = np.zeros_like(corners) if texcoords is None else texcoords + 1
         vertex = corners.astype(np.int64) * (int(t.max(initial=0)) + 1) + t
@@ -513,7 +514,8 @@ def shading_warnings(
             out.append(
                 f"{path}: has no vertex normals (vn), so the renderer interpolates normals "
                 f"across its edges and rounds the {sharp} sharper than {SHARP_DEGREES:.0f} "
-                "degrees (those inside a UV island); export it with normals (sharp edges "
+                f"degrees{' (those inside a UV island)' if textured else ''}; export "
+                "it with normals (sharp edges "
                 "split), or set face_normals = true in its geometry table for a faceted object"
             )
     fix = (

@@ -260,8 +260,15 @@ class CameraSpec(StrictModel):
         if self.type == "orthographic":
             if "ortho_width" not in given:
                 raise FieldError("ortho_width", "missing; add it (an orthographic camera needs it)")
-            for key in sorted({"fov_x_deg", "aperture_radius", "principal_point"} & given):
+            lens = {"fov_x_deg", "aperture_radius", "focus_distance", "principal_point"}
+            for key in sorted(lens & given):
                 raise FieldError(key, "does not apply to type = 'orthographic'; drop it")
+        if self.focus_distance is not None and self.aperture_radius == 0:
+            raise FieldError(  # it was dropped without a word: a pinhole focuses everywhere
+                "focus_distance",
+                "applies to a thin lens only, and this camera is a pinhole (aperture_radius 0); "
+                "give aperture_radius (metres) for a thin lens, or drop focus_distance",
+            )
         if self.principal_point is not None:
             self._check_principal_point()
         return self

@@ -216,18 +216,31 @@ def trace_silhouettes(scene: Scene, cameras: list[Camera]) -> list[tuple[np.ndar
     sensors = {f"sensor_{k:04d}": sensor_dict(c, 1, bounds) for k, c in enumerate(cameras)}
     bare = geometry_dict(scene, mi.load_dict({"type": "diffuse"}))
     loaded = load_scene({"type": "scene", "object": bare, **sensors})
-    out = []
-    for camera, sensor in zip(cameras, loaded.sensors(), strict=True):
-        nx, ny = min(camera.width, BACK_FACE_SIDE), min(camera.height, BACK_FACE_SIDE)
-        x, y = np.meshgrid((np.arange(nx) + 0.5) / nx, (np.arange(ny) + 0.5) / ny)
+
+    def trace(sensor, x, y) -> tuple[np.ndarray, np.ndarray]:
         ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(x.ravel(), y.ravel()), mi.Point2f(0.5))
         si = loaded.ray_intersect(ray)
         hit = np.asarray(si.is_valid())
         shading = np.asarray(si.wi.z)  # the cosine to the shading normal
         back = np.asarray(si.n.x * ray.d.x + si.n.y * ray.d.y + si.n.z * ray.d.z) > 0
-        behind = hit & (((shading < 0) & back) | (shading < BACK_FACE_COSINE))
+        return hit, hit & (((shading < 0) & back) | (shading < BACK_FACE_COSINE))
+
+    out = []
+    for camera, sensor in zip(cameras, loaded.sensors(), strict=True):
+        nx, ny = min(camera.width, BACK_FACE_SIDE), min(camera.height, BACK_FACE_SIDE)
+        x, y = np.meshgrid((np.arange(nx) + 0.5) / nx, (np.arange(ny) + 0.5) / ny)
+        hit, behind = trace(sensor, x, y)
+        # a cell is seen from behind where a second ray in it, off both its centre's row and
+        # column, agrees: a mesh edge projected onto a column of pixel centres let some of
+        # them through the crack between its triangles, onto the far wall's inside (a closed
+        # cylinder seen by orthographic cameras: 11 of 1728 cells, a false warning)
+        behind &= trace(sensor, x + CELL_OFFSET[0] / nx, y + CELL_OFFSET[1] / ny)[1]
         out.append((hit.reshape(ny, nx), behind.reshape(ny, nx)))
     return out
+
+
+#: The second ray of a traced cell, from its centre, in cells (x, y).
+CELL_OFFSET = (0.23, 0.31)
 
 
 def view_warnings(

@@ -459,6 +459,7 @@ def test_a_mesh_without_normals_says_how_it_will_shade(tmp_path, caplog):
     (warning,) = check_obj(plain).warnings
     assert "cube.obj: has no vertex normals" in warning and "rounds the 12 sharper" in warning
     assert "face_normals = true" in warning
+    assert "UV island" not in warning  # it has none (the note read oddly there)
     assert check_obj(plain, face_normals=True).warnings == ()
     assert check_obj(cube_obj(tmp_path / "vn.obj", normals=True)).warnings == ()
 
@@ -833,3 +834,28 @@ def test_a_folder_given_for_an_output_file_names_the_fix(tmp_path):
     with pytest.raises(InputError, match=r"--sheet .*: is a folder; give a file's name in it"):
         check_output(tmp_path, "--sheet", suffixes=(".png",))
     assert check_output(tmp_path / "s.png", "--sheet", suffixes=(".png",)) == tmp_path / "s.png"
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        ({"focus_distance": 3.0}, "scene.cameras[0].focus_distance: applies to a thin lens only"),
+        (
+            {"type": "orthographic", "ortho_width": 1, "focus_distance": 3.0},
+            "scene.cameras[0].focus_distance: does not apply to type = 'orthographic'",
+        ),
+        ({"aperture_radius": 0.01, "focus_distance": 3.0}, None),
+    ],
+)
+def test_a_focus_distance_needs_a_thin_lens(tmp_path, extra, message):
+    """`focus_distance` on a pinhole or an orthographic camera was dropped without a word (a
+    user who meant a thin lens got a pinhole; helper-34's audit); a thin lens's reads."""
+    camera = {"origin": [0, -4, 0], "target": [0, 0, 0], "width": 8, "height": 6}
+    camera |= {} if extra.get("type") else {"fov_x_deg": 40}
+    table = scene_table(cameras=[camera | extra])
+    if message is None:
+        assert parse_scene(table, tmp_path / "s.toml").cameras[0].focus_distance == 3.0
+        return
+    with pytest.raises(CaptureError) as err:
+        parse_scene(table, tmp_path / "s.toml")
+    assert message in str(err.value)

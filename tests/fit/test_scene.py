@@ -466,3 +466,40 @@ def test_a_silhouette_off_its_object_mask_is_warned(tmp_path):
     assert warning.startswith("cap: the object's silhouette overlaps the object mask of 1 of 2")
     assert "IoU off 0." in warning and "aligned" not in warning and "axes" in warning
     assert view_warnings(scene, views, "cap", [(hit, 0.5), None]) == []
+
+
+def test_a_crack_between_triangles_on_pixel_centres_is_not_a_back_face(tmp_path):
+    """A closed cylinder (radius 0.1, length 2, caps, radial `vn`) seen by orthographic cameras
+    0.8 wide at 72 pixels: an edge of its side projects onto a column of pixel centres, and some
+    of those rays slipped through the crack between its triangles onto the far wall's inside.
+    11 of 1728 cells were taken as seen from behind and two views warned; its renders hold no
+    black pixel (helper-34's audit)."""
+    from fit.render.scene import view_warnings
+
+    n, r, lines = 48, 0.1, []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        lines += [f"v {r * np.cos(a)} {r * np.sin(a)} {z}" for z in (-1, 1)]
+        lines += [f"vn {np.cos(a)} {np.sin(a)} 0"]
+    lines += ["v 0 0 -1", "v 0 0 1", "vn 0 0 -1", "vn 0 0 1"]
+    bottom, top = 2 * n + 1, 2 * n + 2
+    for i in range(n):
+        j = (i + 1) % n
+        a, b, c, d = 2 * i + 1, 2 * j + 1, 2 * j + 2, 2 * i + 2
+        lines += [f"f {a}//{i + 1} {b}//{j + 1} {c}//{j + 1}"]
+        lines += [f"f {a}//{i + 1} {c}//{j + 1} {d}//{i + 1}"]
+        lines += [f"f {bottom}//{n + 1} {b}//{n + 1} {a}//{n + 1}"]
+        lines += [f"f {top}//{n + 2} {d}//{n + 2} {c}//{n + 2}"]
+    (tmp_path / "cyl.obj").write_text("\n".join(lines) + "\n")
+    cameras = [
+        {"type": "orthographic", "origin": o, "target": [0, 0, 0], "ortho_width": 0.8}
+        | {"width": 72, "height": 96}
+        for o in ([0, -5, 1.2], [3.5, -3.5, 0.8], [-2.5, -4, 2.5])
+    ]
+    light = {"center": [3, -2.5, 3], "target": [0, 0, 0], "size": [1.2, 0.8], "power": 10.0}
+    scene = parse_scene(
+        {"geometry": {"type": "obj", "file": "cyl.obj"}, "cameras": cameras, "lights": [light]},
+        tmp_path / "s.toml",
+    )
+    views = [(f"v{k}", camera) for k, camera in enumerate(scene.cameras)]
+    assert view_warnings(scene, views, "cap") == []
