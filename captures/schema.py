@@ -625,8 +625,8 @@ def parse_scene(data: dict, file: Path, names: Callable[[str], str] = str) -> Sc
         )
         raise CaptureError(
             f"{file}: scene.{name} {list(point)} is inside the object{others} (centre "
-            f"{np.round(center, 3).tolist()}, radius {radius:.3g}): {what} (check the units "
-            "and the axes: a mesh in millimetres with cameras and lights in metres, or a "
+            f"{np.round(center, 3).tolist()}, bounding radius {radius:.3g}): {what} (check the "
+            "units and the axes: a mesh in millimetres with cameras and lights in metres, or a "
             "swapped axis, puts it there)"
         )
     for i, light in enumerate(scene.lights):
