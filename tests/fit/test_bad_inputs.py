@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import re
 import shutil
@@ -2023,3 +2024,29 @@ def test_a_ctrl_c_while_the_command_line_is_built_is_one_line(capsys, monkeypatc
     monkeypatch.setattr(cli, "_command", interrupted)
     code, _, stderr = run(["fit", "x.toml"], capsys)
     assert code == 130 and stderr.strip() == "interrupted: stopped by Ctrl-C or SIGTERM"
+
+
+def test_a_fit_of_many_pixels_is_warned_with_a_downscale(base, tmp_path, caplog, monkeypatch):
+    """Three 6000x4000 photos fitted at full size (72 M pixels a step) were accepted without a
+    word: 15 GB and no step in 6 minutes (helper-35's audit). Above `LARGE_PIXELS` a step, a
+    warning gives the `fit.downscale` that renders about a million; below it, nothing."""
+    import logging
+
+    import fit.commands.fit as fit_command
+    from fit.config import load_fit_config
+
+    cfg = load_fit_config(base / "fit.toml")
+    with caplog.at_level(logging.WARNING):
+        fit_command.prepare(cfg)
+    assert not [r for r in caplog.records if "pixels a step" in r.getMessage()]
+    caplog.clear()
+    monkeypatch.setattr(fit_command, "LARGE_PIXELS", 100)
+    with caplog.at_level(logging.WARNING):
+        prepared = fit_command.prepare(cfg)
+    (message,) = [r.getMessage() for r in caplog.records if "pixels a step" in r.getMessage()]
+    views = prepared.problem.at(1).views
+    pixels = sum(v.image.shape[0] * v.image.shape[1] for v in views)
+    assert f"the fit renders {pixels:,} pixels a step" in message
+    factor = cfg.downscale * math.ceil(math.sqrt(pixels / 1e6))
+    assert f"set fit.downscale = {factor} (now {cfg.downscale}" in message
+    assert message in prepared.capture.warnings  # in the summary and the report too
