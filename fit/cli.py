@@ -69,6 +69,10 @@ NAME_TOO_LONG = (
 )
 
 
+#: `inspect` notes views above this many pixels, with the `--downscale` that shows them at 1 M.
+LARGE_VIEW = 2_000_000
+
+
 def _say(label: str, style: str, text: str) -> None:
     """One unwrapped line `label text`, the text plain (brackets in it are shown, not markup)."""
     _said["interrupted"] |= "interrupted" in f"{label} {text}"
@@ -609,6 +613,16 @@ def inspect(
         check_output(sheet, "--sheet", force=redraw, inputs=[capture], suffixes=(".png",))
     except InputError as err:
         raise _fail(err, 2) from None
+    big = max(cap.views, key=lambda v: v.camera.width * v.camera.height).camera
+    if silhouette and big.width * big.height > LARGE_VIEW:  # 6000x4000 x 3: 2 min, 7 GB, silent
+        factor = downscale * math.ceil(math.sqrt(big.width * big.height / 1e6))
+        _say(
+            "note:",
+            "yellow",
+            f"views of up to {big.width}x{big.height}: rendering their silhouettes takes "
+            f"minutes and gigabytes; --downscale {factor} shows them at about 1 M pixels (or "
+            "--no-silhouette)",
+        )
     _start(variant)
     from .commands.inspect import contact_sheet, silhouettes, summary
 
