@@ -481,8 +481,9 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
         if pixels * spp >= 2**32:
             raise InputError(
                 f"{cfg.path}: fit.phases[{k}]{given}: {spp} spp over {pixels} pixels is more "
-                f"than Mitsuba's 2^32 samples a render; {_smaller(cfg, pixels)}, or lower the "
-                "phase's spp"
+                "than Mitsuba's 2^32 samples a render; "
+                + (f"{_smaller(cfg, pixels)}, or " if pixels > 1e6 else "")
+                + "lower the phase's spp"
             )
         if pixels > largest:
             largest, sizes = pixels, {f"{v.image.shape[1]}x{v.image.shape[0]}" for v in views}
