@@ -234,7 +234,8 @@ def trace_silhouettes(scene: Scene, cameras: list[Camera]) -> list[tuple[np.ndar
         # column, agrees: a mesh edge projected onto a column of pixel centres let some of
         # them through the crack between its triangles, onto the far wall's inside (a closed
         # cylinder seen by orthographic cameras: 11 of 1728 cells, a false warning)
-        behind &= trace(sensor, x + CELL_OFFSET[0] / nx, y + CELL_OFFSET[1] / ny)[1]
+        if behind.any():
+            behind &= trace(sensor, x + CELL_OFFSET[0] / nx, y + CELL_OFFSET[1] / ny)[1]
         out.append((hit.reshape(ny, nx), behind.reshape(ny, nx)))
     return out
 

@@ -859,3 +859,28 @@ def test_a_focus_distance_needs_a_thin_lens(tmp_path, extra, message):
     with pytest.raises(CaptureError) as err:
         parse_scene(table, tmp_path / "s.toml")
     assert message in str(err.value)
+
+
+@pytest.mark.parametrize(
+    "camera, warned",
+    [
+        ({"fov_x_deg": 0.7}, True),
+        ({"fov_x_deg": 40}, False),
+        ({"type": "orthographic", "ortho_width": 0.7}, False),
+    ],
+)
+def test_a_capture_cameras_field_of_view_in_radians_is_warned(tmp_path, caplog, camera, warned):
+    """A capture.toml's camera with its field of view in radians is warned in the manifest's own
+    field names, with the value in degrees; an orthographic camera has none to warn of."""
+    import logging
+
+    table = scene_table(
+        cameras=[{"origin": [0, -4, 0], "target": [0, 0, 0], "width": 8, "height": 6} | camera]
+    )
+    with caplog.at_level(logging.WARNING):
+        parse_scene(table, tmp_path / "s.toml")
+    notes = [r.getMessage() for r in caplog.records if "in radians" in r.getMessage()]
+    assert bool(notes) == warned
+    if warned:
+        assert "s.toml: scene.cameras[0].fov_x_deg = 0.7:" in notes[0]
+        assert "give 40.11 (degrees)" in notes[0]
