@@ -11,3 +11,13 @@ class ConfigError(InputError):
 class OutputError(InputError):
     """A run folder could not be written (a full disk, no permission); the message names the
     folder, what was kept and how to go on."""
+
+
+class Stopped(Exception):
+    """A command stopped by Ctrl-C or SIGTERM; its text says what it left (the command line
+    prints it and exits 130). `unwritten`: what could not be written on the way out (a full
+    disk), if anything."""
+
+    def __init__(self, what: str, unwritten: str | None = None):
+        super().__init__(what)
+        self.unwritten = unwritten

@@ -14,7 +14,7 @@ kernel_cache = "~/.drjit/{host}"           # Dr.Jit's kernel cache on each node
 `layerfit fit --starts K` (or `fit.starts`) runs one fit from K starts (`starts.py`).
 """
 
-from .cluster import Cancelled, connect
+from ..cluster import Cancelled, connect
 from .runner import run_batch, write_index
 from .spec import Batch, BatchSpec, Job, load_batch
 

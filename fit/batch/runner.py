@@ -28,7 +28,7 @@ import numpy as np
 from captures.errors import InputError
 from captures.files import write_text
 
-from .cluster import Cancelled, connect, driver_variant, one_line_error, prepare_worker
+from ..cluster import Cancelled, connect, driver_variant, one_line_error, prepare_worker
 from .spec import Batch, Job
 
 log = logging.getLogger(__name__)
@@ -104,7 +104,8 @@ def fit_job(job: Job, cpus: int, variant: str | None, kernel_cache: str) -> dict
     entry = {"host": socket.gethostname(), "pid": os.getpid()}
     try:
         prepare_worker(cpus, variant, kernel_cache)
-        from ..commands.fit import check_output, check_resume, prepare, run_fit
+        from ..commands.fit import run_fit
+        from ..commands.prepare import check_output, check_resume, prepare
         from ..config import load_fit_config
 
         cfg = load_fit_config(job.config, job.capture, job.seed)

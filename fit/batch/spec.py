@@ -15,10 +15,10 @@ from captures.errors import listing
 from captures.files import check_output
 from captures.model import ExistingPath, PositiveInt, StrictModel, expect_kind, parse_model
 
+from ..cluster import DEFAULT_KERNEL_CACHE
 from ..errors import ConfigError
 from ..limits import MAX_SEED
 from ..material import read_toml
-from .cluster import DEFAULT_KERNEL_CACHE
 
 
 class BatchSpec(StrictModel):

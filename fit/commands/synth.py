@@ -18,7 +18,7 @@ from captures.scene import EnvMap, ObjFile
 from captures.schema import camera_to_table, scene_to_table
 
 from ..material import Material
-from ..render import load_scene, render, scene_dict
+from .common import Quiet, check_capture_cameras, render_inputs, scene_and_material, start, stopping
 
 FORMATS = {"exr": ("exr", "linear"), "png": ("png", "srgb"), "jpg": ("jpg", "srgb")}
 
@@ -59,6 +59,8 @@ def synthesize(
     `replace`, over an existing folder, removed only then). `progress(view, spp_done)` is
     called as views render.
     """
+    from ..render import load_scene, render, scene_dict
+
     if fmt not in FORMATS:
         raise ValueError(f"format {fmt!r}; choose one of {', '.join(FORMATS)}")
     suffix, encoding = FORMATS[fmt]
@@ -126,3 +128,73 @@ def _replace_env(scene: Scene, path: Path) -> Scene:
     from dataclasses import replace
 
     return replace(scene, environment=EnvMap(path, scene.environment.scale))
+
+
+def synth(
+    config: Path,
+    out: Path,
+    scene: Path | None = None,
+    fmt: str = "exr",
+    spp: int | None = None,
+    seed: int = 0,
+    degradation: Degradation = Degradation(),
+    force: bool = False,
+    variant: str | None = None,
+    progress=None,
+) -> Path:
+    """`layerfit synth`: render a synthetic capture of `config` (a render config whose material
+    is the truth, or a preset with `scene`) into the new folder `out`; `force` replaces a
+    capture synth made, never one of photographs. `progress`: a `rich.progress.Progress`
+    (default: none shown). Returns the manifest's path."""
+    from captures.errors import InputError
+    from captures.files import check_output, refuse_foreign
+
+    progress = progress or Quiet()
+    the_scene, material, config_spp = scene_and_material(config, scene)
+    check_capture_cameras(the_scene, scene or config)
+    if fmt not in FORMATS:
+        raise InputError(f"--format {fmt!r}: unknown format; choose one of exr, png, jpg")
+    inputs = render_inputs(config, scene, the_scene, material)
+    check_output(out, "--out", force=force, inputs=inputs, folder=True)
+    manifest = out / "capture.toml"
+    if out.is_dir() and any(out.iterdir()) and not manifest.is_file():
+        raise InputError(
+            f"--out {out}: is a folder but not a capture (no capture.toml); --force replaces "
+            "only a capture folder: choose another path"
+        )
+    if out.is_dir() and manifest.is_file() and not _synthetic(out):
+        raise InputError(
+            f"--out {out}: holds photographs (its capture.toml has no [truth]); --force "
+            "replaces only a capture made by synth: choose another path"
+        )
+    if out.is_dir() and manifest.is_file():
+        refuse_foreign(out, manifest, "synth")
+    start(variant)
+    spp = spp or config_spp
+    with stopping(lambda: "nothing written"):
+        tasks = [progress.add_task(f"view {i}", total=spp) for i in range(len(the_scene.cameras))]
+        try:
+            return synthesize(
+                the_scene,
+                material,
+                out,
+                spp,
+                seed,
+                fmt,
+                degradation,
+                lambda view, n: progress.update(tasks[view], completed=n),
+                replace=force,
+            )
+        except FileExistsError as err:
+            raise InputError(str(err)) from None
+
+
+def _synthetic(folder: Path) -> bool:
+    """Whether a capture folder was made by `synth` (its manifest holds the [truth]); an
+    unreadable manifest counts as not."""
+    import tomllib
+
+    try:
+        return "truth" in tomllib.loads((folder / "capture.toml").read_text(encoding="utf-8-sig"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return False

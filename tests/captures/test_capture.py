@@ -883,7 +883,7 @@ def test_a_peer_truth_outside_the_bounds_is_fitted_not_scored(tmp_path, caplog):
     which a peer's user cannot). The fit runs; that key is warned and not scored."""
     import logging
 
-    from fit.commands.fit import check_truth
+    from fit.commands.prepare import check_truth
     from fit.material import build_material, resolve
 
     material = {"base_color": [0.5, 0.4, 0.3], "specular_roughness": 0.08, "ior": 1.5}

@@ -1684,7 +1684,7 @@ def test_ctrl_c_in_synth_is_one_line_and_leaves_nothing(base, tmp_path, capsys, 
     import os
     import signal
 
-    import fit.commands.synth as synth
+    import fit.render
 
     def interrupted(*args, **kwargs):
         if how == "sigterm":
@@ -1692,13 +1692,13 @@ def test_ctrl_c_in_synth_is_one_line_and_leaves_nothing(base, tmp_path, capsys, 
             raise AssertionError("SIGTERM did not stop the render")
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(synth, "render", interrupted)
+    monkeypatch.setattr(fit.render, "render", interrupted)
     work = tmp_path / "w"
     shutil.copytree(base, work)
     before = snapshot(work)
     code, _, stderr = run(["synth", work / "render.toml", "--out", work / "c"], capsys)
     lines = [line for line in stderr.splitlines() if line.strip().startswith(("error", "Trace"))]
-    assert code == 130 and lines == ["error: interrupted: nothing written"], stderr
+    assert code == 130 and not lines and "interrupted: nothing written" in stderr, stderr
     assert snapshot(work) == before  # no capture, no hidden temporary folder
 
 
@@ -1765,7 +1765,7 @@ def test_a_gains_truth_is_scored_only_where_a_gain_is_fitted(base, caplog):
 
     from captures import CaptureError
     from captures.capture import load_capture
-    from fit.commands.fit import check_truth
+    from fit.commands.prepare import check_truth
 
     capture = load_capture(base / "cap")
     capture.truth["gain.view_00"] = [1.0, 2.0]
@@ -1789,7 +1789,7 @@ def test_force_never_replaces_the_fits_starting_preset(base, tmp_path):
     """A fit starting from a run's preset.toml, written with --force into that run folder,
     replaced the preset it started from; it is an input like the config and the capture."""
     from captures import InputError
-    from fit.commands.fit import check_output
+    from fit.commands.prepare import check_output
     from fit.config import load_fit_config
 
     work = tmp_path / "w"
@@ -1812,7 +1812,7 @@ def test_resume_refuses_a_checkpoint_of_another_capture_material_or_loss(base, t
     another capture with the same view names, another starting material or another loss was
     resumed without a word (its history then mixed two losses)."""
     from captures import InputError
-    from fit.commands.fit import check_resume, fit_identity, prepare
+    from fit.commands.prepare import check_resume, fit_identity, prepare
     from fit.config import load_fit_config
     from fit.solvers import Checkpoint
 
@@ -2028,11 +2028,11 @@ def test_a_ctrl_c_while_the_command_line_is_built_is_one_line(capsys, monkeypatc
 
 def test_a_fit_of_many_pixels_is_warned_with_a_downscale(base, tmp_path, caplog, monkeypatch):
     """Three 6000x4000 photos fitted at full size (72 M pixels a step) were accepted without a
-    word: 15 GB and no step in 6 minutes (helper-35's audit). Above `LARGE_PIXELS` a step, a
+    word: 15 GB and no step in 6 minutes. Above `LARGE_PIXELS` a step, a
     warning gives the `fit.downscale` that renders about a million; below it, nothing."""
     import logging
 
-    import fit.commands.fit as fit_command
+    import fit.commands.prepare as fit_command
     from fit.config import load_fit_config
 
     cfg = load_fit_config(base / "fit.toml")

@@ -14,8 +14,8 @@ import pytest
 from typer.testing import CliRunner
 
 from fit.batch import connect, load_batch, run_batch
-from fit.batch.starts import start_points
 from fit.commands.fit import run_fit
+from fit.commands.starts import start_points
 from fit.commands.synth import synthesize
 from fit.config import load_fit_config, load_render_config
 from fit.material import resolve
@@ -265,7 +265,7 @@ def test_multi_start_leaves_the_ior_valley(tmp_path, ray_cluster):
 def test_bench_schedules_run_as_ray_tasks(tmp_path, ray_cluster):
     """`layerfit bench --only fit --ray`: each schedule a task holding the whole node (2 CPUs);
     the table is the local one's (same schedules, errors against the truth)."""
-    from fit.commands.bench import fit_trade_table
+    from fit.bench import fit_trade_table
 
     sphere_capture(tmp_path / "cap", 24, 18)
     (tmp_path / "fit.toml").write_text(
@@ -303,7 +303,7 @@ def test_a_bad_cluster_address_is_one_line_before_ray(tmp_path):
     the option (Ray itself waited minutes printing its own log lines, or raised an internal
     error)."""
     from captures.errors import InputError
-    from fit.batch.cluster import check_address
+    from fit.cluster import check_address
 
     check_address(None)
     check_address("auto")
@@ -399,8 +399,8 @@ def test_a_run_folder_that_is_not_a_run_is_said_for_a_batch(tmp_path, monkeypatc
     """In a batch (no --out, no --force) a job's folder holding other files, or a checkpoint
     that cannot be read, says what to do there; an unmakeable kernel cache names its key."""
     from captures.errors import InputError
-    from fit.batch.cluster import prepare_worker
     from fit.batch.runner import _check_run_folder
+    from fit.cluster import prepare_worker
 
     run = tmp_path / "run"
     assert _check_run_folder(run) is False

@@ -309,17 +309,18 @@ def test_ctrl_c_while_the_run_folder_is_written_waits_for_it(tmp_path, monkeypat
     after the preset) is held until the folder is whole: stopped there, the new preset had sat
     beside no summary, or beside the summary of the run it replaced."""
     from fit.commands import fit as fit_command
+    from fit.commands import run_folder
     from fit.config import load_fit_config
 
     small_capture(tmp_path / "cap", spp=16)
     (tmp_path / "fit.toml").write_text(RESUMABLE.replace("steps = 60", "steps = 2"))
-    real = fit_command.write_report
+    real = run_folder.write_report
 
     def report_then_ctrl_c(*args, **kwargs):
         os.kill(os.getpid(), signal.SIGINT)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(fit_command, "write_report", report_then_ctrl_c)
+    monkeypatch.setattr(run_folder, "write_report", report_then_ctrl_c)
     cfg = load_fit_config(tmp_path / "fit.toml")
     # Python's handler, or SIG_IGN where the tests run as a background job of a script
     before = signal.getsignal(signal.SIGINT)
@@ -467,6 +468,7 @@ def test_resume_refuses_a_capture_made_again_at_another_size(tmp_path):
     internal error mid-resume); a checkpoint naming what this layerfit does not know is refused
     as another version's (it was a StopIteration)."""
     from fit.commands import fit as fit_command
+    from fit.commands import prepare
     from fit.config import load_fit_config
     from fit.solvers import Checkpoint
 
@@ -475,7 +477,7 @@ def test_resume_refuses_a_capture_made_again_at_another_size(tmp_path):
     cfg, run = load_fit_config(tmp_path / "fit.toml"), tmp_path / "run"
     prepared = fit_command.prepare(cfg)
     checkpoint = Checkpoint(run / "checkpoint.npz")
-    checkpoint.identity = fit_command.fit_identity(prepared, cfg)
+    checkpoint.identity = prepare.fit_identity(prepared, cfg)
     checkpoint.latest = {
         "phase": 0,
         "u_phase": np.zeros(3, np.float32),
@@ -484,26 +486,26 @@ def test_resume_refuses_a_capture_made_again_at_another_size(tmp_path):
         "reports": [],
     }
     checkpoint.flush()
-    fit_command.check_resume(prepared, cfg, run)  # its own: accepted
+    prepare.check_resume(prepared, cfg, run)  # its own: accepted
     older = {k: v for k, v in checkpoint.identity.items() if k != "view sizes"}
     checkpoint.identity = older  # an earlier layerfit's: what it has is compared
     checkpoint.flush()
-    fit_command.check_resume(prepared, cfg, run)
+    prepare.check_resume(prepared, cfg, run)
     before = {k: v for k, v in older.items() if k != "capture"}  # a key always compared
     checkpoint.identity = before
     checkpoint.flush()
-    with pytest.raises(fit_command.InputError, match="other capture"):
-        fit_command.check_resume(prepared, cfg, run)
+    with pytest.raises(prepare.InputError, match="other capture"):
+        prepare.check_resume(prepared, cfg, run)
     checkpoint.identity = {**older, "lens": "fisheye"}
     checkpoint.flush()
-    with pytest.raises(fit_command.InputError, match=r"another version of layerfit.*lens"):
-        fit_command.check_resume(prepared, cfg, run)
-    checkpoint.identity = fit_command.fit_identity(prepared, cfg)
+    with pytest.raises(prepare.InputError, match=r"another version of layerfit.*lens"):
+        prepare.check_resume(prepared, cfg, run)
+    checkpoint.identity = prepare.fit_identity(prepared, cfg)
     checkpoint.flush()
     shutil.rmtree(tmp_path / "cap")
     small_capture(tmp_path / "cap", spp=4, size=(20, 16))  # made again, at another size
-    with pytest.raises(fit_command.InputError, match="other view sizes"):
-        fit_command.check_resume(fit_command.prepare(cfg), cfg, run)
+    with pytest.raises(prepare.InputError, match="other view sizes"):
+        prepare.check_resume(fit_command.prepare(cfg), cfg, run)
 
 
 def test_a_full_disk_is_one_line_and_keeps_the_checkpoint(tmp_path, monkeypatch, caplog):
@@ -513,6 +515,7 @@ def test_a_full_disk_is_one_line_and_keeps_the_checkpoint(tmp_path, monkeypatch,
     import errno
 
     from fit.commands import fit as fit_command
+    from fit.commands import run_folder
     from fit.config import load_fit_config
     from fit.errors import OutputError
     from fit.solvers import checkpoint as checkpoint_module
@@ -526,7 +529,7 @@ def test_a_full_disk_is_one_line_and_keeps_the_checkpoint(tmp_path, monkeypatch,
         raise full
 
     monkeypatch.setattr(checkpoint_module, "atomic_path", no_space)
-    monkeypatch.setattr(fit_command, "write_text", no_space)
+    monkeypatch.setattr(run_folder, "write_text", no_space)
     monkeypatch.setenv("LAYERFIT_CHECKPOINT_SECONDS", "0")
     unwritable = re.escape(f"{run}: could not write the run folder") + ".*no checkpoint"
     with pytest.raises(OutputError, match=unwritable):
@@ -544,8 +547,9 @@ def test_a_stop_on_a_full_disk_is_still_a_stop_and_says_which_checkpoint(tmp_pat
     an earlier one (it said "checkpoint saved")."""
     import errno
 
-    from fit.cli import _stopped
     from fit.commands import fit as fit_command
+    from fit.commands import run_folder
+    from fit.commands.fit import stopped
     from fit.config import load_fit_config
     from fit.solvers import checkpoint as checkpoint_module
 
@@ -561,7 +565,7 @@ def test_a_stop_on_a_full_disk_is_still_a_stop_and_says_which_checkpoint(tmp_pat
         calls.append(n)
         if len(calls) == 4:  # one checkpoint written by then (interval 0): the disk fills
             monkeypatch.setattr(checkpoint_module, "atomic_path", no_space)
-            monkeypatch.setattr(fit_command, "write_text", no_space)
+            monkeypatch.setattr(run_folder, "write_text", no_space)
         if len(calls) == 8:
             _ctrl_c()
 
@@ -571,7 +575,7 @@ def test_a_stop_on_a_full_disk_is_still_a_stop_and_says_which_checkpoint(tmp_pat
     stop = caught.value
     assert not stop.saved and "could not write the run folder" in stop.unwritten
     assert (run / "checkpoint.npz").exists() and not (run / "summary.json").exists()
-    line = _stopped(stop, tmp_path / "fit.toml", run, None, None, None)
+    line = stopped(stop, tmp_path / "fit.toml", run, None, None, None)
     assert line.startswith("the stop's state could not be saved (an earlier checkpoint is kept)")
     assert "--resume" in line
     assert _checkpoint_step(run) < 8  # the kept checkpoint is the earlier state
@@ -586,9 +590,9 @@ def _checkpoint_step(run: Path) -> int:
 def test_the_printed_resume_command_keeps_holdout_and_quotes_paths():
     import shlex
 
-    from fit.cli import _resume_command
+    from fit.commands.fit import resume_command
 
-    line = _resume_command(Path("my fits/cup.toml"), Path("out/a b"), 1, "llvm_ad_rgb")
+    line = resume_command(Path("my fits/cup.toml"), Path("out/a b"), 1, "llvm_ad_rgb")
     assert shlex.split(line) == [
         "layerfit", "fit", "my fits/cup.toml", "--out", "out/a b", "--resume",
         "--holdout", "1", "--variant", "llvm_ad_rgb",
@@ -600,11 +604,12 @@ def test_a_view_too_small_for_the_default_schedule_names_it_and_the_way_out(tmp_
     default schedule's (the config has no [[fit.phases]]) and how to give one of full resolution
     (it said only "give a smaller factor", of phases the user never wrote)."""
     from fit.commands import fit as fit_command
+    from fit.commands import prepare
     from fit.config import load_fit_config
 
     small_capture(tmp_path / "cap", spp=4, size=(7, 5))
     (tmp_path / "fit.toml").write_text(CONFIG)
-    with pytest.raises(fit_command.InputError) as caught:
+    with pytest.raises(prepare.InputError) as caught:
         fit_command.prepare(load_fit_config(tmp_path / "fit.toml"))
     message = str(caught.value)
     assert "fit.phases[0].downscale = 2 (the default schedule)" in message

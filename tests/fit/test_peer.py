@@ -165,7 +165,7 @@ def test_an_eon_truth_is_scored_only_against_an_eon_glaze(caplog):
     """A peer's diffuse roughness is EON's (`truth_options`): an EON glaze scores its sigma; a
     qualitative one does not, and the warning names the option to set."""
     from captures.capture import Capture
-    from fit.commands.fit import check_truth
+    from fit.commands.prepare import check_truth
     from fit.material import build_material
 
     def capture():

@@ -139,7 +139,7 @@ def test_contact_sheet_without_silhouette(tmp_path):
 def test_synth_records_the_diffuse_lobe_its_truth_belongs_to(tmp_path, caplog):
     """A capture rendered with the EON lobe says so (`[truth_options]`): a fit with the
     qualitative lobe warns and does not score sigma against EON's roughness; one with EON does."""
-    from fit.commands.fit import check_truth
+    from fit.commands.prepare import check_truth
     from fit.material import build_material
 
     _, scene = small_sphere()
@@ -236,12 +236,12 @@ def test_inspect_notes_large_views_with_a_downscale(tmp_path, monkeypatch, limit
 
     from typer.testing import CliRunner
 
-    import fit.cli
+    import fit.commands.inspect
     from fit.cli import app
 
     cfg, scene = small_sphere()
     synthesize(scene, cfg.material, tmp_path / "cap", spp=4)
-    monkeypatch.setattr(fit.cli, "LARGE_VIEW", limit)
+    monkeypatch.setattr(fit.commands.inspect, "LARGE_VIEW", limit)
     monkeypatch.chdir(tmp_path)
     result = CliRunner().invoke(app, ["inspect", "cap"])
     assert result.exit_code == 0, result.output

@@ -157,7 +157,7 @@ def test_two_masks_sharing_a_file_keep_their_own_fitted_texels(tmp_path):
     np.testing.assert_allclose(read_image(files["glaze.mask.texture"]), fitted, atol=1e-6)
     np.testing.assert_allclose(read_image(files["lime.mask.texture"]), painted, atol=1e-6)
     # the report's mask is the fitted texture (x fbm): baked again from the preset, it matches
-    from fit.commands.fit import _masks
+    from fit.commands.run_folder import masks as _masks
 
     report = read_image(tmp_path / "run" / "report" / "mask-00-glaze.mask.png")
     baked_fitted, baked_start = _masks(preset)["glaze.mask"], _masks(shared)["glaze.mask"]

@@ -19,9 +19,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..config import FitConfig
-from ..solvers import Problem, Result, run_schedule
-from .cluster import (
+from ..cluster import (
     DEFAULT_KERNEL_CACHE,
     Cancelled,
     connect,
@@ -29,6 +27,8 @@ from .cluster import (
     one_line_error,
     prepare_worker,
 )
+from ..config import FitConfig
+from ..solvers import Problem, Result, run_schedule
 
 #: |u| of the centre the other starts spread around (sigmoid(2) = 0.88 of a parameter's range).
 CENTER_LIMIT = 2.0
@@ -71,7 +71,7 @@ def fit_from(
     cfg: FitConfig, holdout: int | None, u: np.ndarray, variant: str | None, cache: str
 ) -> dict:
     """In a worker: `cfg`'s schedule from the unconstrained `u`, and the common loss there."""
-    from ..commands.fit import prepare
+    from .prepare import prepare
 
     prepare_worker(1, variant, cache)
     began = time.perf_counter()

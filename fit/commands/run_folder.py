@@ -1,0 +1,250 @@
+"""A fit's run folder written from a (possibly partial) result: the summary, the report's
+renders, the preset and fitted textures, each file atomically."""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import html
+import json
+import logging
+import math
+import re
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+from captures.images import TEXTURE_SUFFIXES, write_image
+
+from ..config import config_identity
+from ..errors import OutputError
+from ..material import (
+    at_bounds,
+    provenance,
+    save_preset,
+    to_physical,
+)
+from ..material.preset import software_versions
+from ..output import ViewPanel, write_report, write_text
+from ..solvers import Checkpoint
+
+log = logging.getLogger(__name__)
+
+#: Samples per pixel of the renders in the report (and the per-view residuals).
+REPORT_SPP = 64
+
+
+#: What a write into a run folder fails with that its user can fix (space, quota, permissions).
+WRITE_ERRORS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EROFS, errno.EPERM})
+
+
+@contextlib.contextmanager
+def writing(out: Path, checkpoint: Checkpoint | None):
+    """A run folder that cannot be written (a full disk) is one line saying what was kept."""
+    try:
+        yield
+    except OSError as err:
+        inside = isinstance(err.filename, str) and Path(err.filename).resolve().is_relative_to(
+            Path(out).resolve()
+        )
+        if err.errno not in WRITE_ERRORS and not inside:  # not the folder's: not this
+            raise
+        kept = (
+            f"its checkpoint {checkpoint.path} is kept: free space (or fix permissions) and run "
+            "the same command with --resume"
+            if checkpoint is not None and checkpoint.path.exists()
+            else "no checkpoint was saved: free space (or fix permissions) and run it again"
+        )
+        raise OutputError(
+            f"{out}: could not write the run folder ({err.strerror or err}"
+            f"{f': {err.filename}' if err.filename else ''}); {kept}"
+        ) from None
+
+
+def write_run(
+    cfg, out, capture, held, problem, start, result, wall, interrupted=False, starts=None
+) -> dict:
+    """The run folder's files from a (possibly partial) result (`starts`: a multi-start's).
+    Images an earlier run wrote into this folder (`--force`) and this one did not (a view or a
+    fitted texture it no longer has) are removed once the new files are in place; other files
+    are left alone."""
+    before = _outputs(out)
+    free = problem.free
+    textures = {  # fitted textures as images next to the summary and in the preset
+        f.key: np.asarray(result.values[f.key], np.float32).reshape(f.shape)
+        for f in free
+        if f.shape
+    }
+    panels = _panels(cfg, capture, held, problem, result)
+    summary = _summary(cfg, capture, held, start, result, wall, panels, interrupted, free)
+    if starts is not None:
+        summary["starts"] = starts
+    for key, texels in textures.items():
+        write_image(out / f"{key}.exr", texels)
+    # the fitted textures' files: the report's masks are baked from them (it showed the start's)
+    fitted_material = cfg.material.with_values(result.values).with_textures(
+        {key: out / f"{key}.exr" for key in textures}
+    )
+    if interrupted:  # no preset of a fit that did not end (nor an earlier run's beside it)
+        (out / "preset.toml").unlink(missing_ok=True)
+    else:
+        std = {k: v for k, v in (result.std or {}).items() if k in cfg.material.params}
+        save_preset(
+            fitted_material,
+            out / "preset.toml",
+            provenance(cfg.capture, cfg.path, result.loss, std or None),
+            textures,
+        )
+    shown = masks(fitted_material) | {k: t[..., 0] for k, t in textures.items()}
+    title = f"{cfg.path.name}{' (interrupted)' if interrupted else ''}"
+    write_report(out, summary, panels, shown, title)
+    # the summary last: beside no checkpoint, it marks a finished run folder (batches skip those)
+    write_text(out / "summary.json", json.dumps(_finite(summary), indent=2, allow_nan=False))
+    for path, inode in before.items():  # every file is written anew (atomic: a new inode)
+        if path.exists() and path.stat().st_ino == inode:
+            path.unlink()
+    return summary
+
+
+def _outputs(out: Path) -> dict[Path, int]:
+    """The images an earlier fit wrote into this run folder that are there now, with their
+    inodes: the PNGs its `report.html` shows, the texture files its `preset.toml` names as the
+    preset writes them (`preset.<key>.<ext>`), and fitted textures named by a parameter of its
+    `summary.json` (`<key>.exr`). Nothing else a user keeps there (a PNG of their own in
+    `report/`, a texture a hand-edited preset names: both were deleted by `--force`)."""
+    try:
+        keys = set(json.loads((out / "summary.json").read_text())["values"])
+    except (OSError, ValueError, KeyError, TypeError):
+        keys = set()
+    try:
+        preset = tomllib.loads((out / "preset.toml").read_text())
+    except (OSError, ValueError):
+        preset = {}
+    try:
+        page = (out / "report.html").read_text(errors="replace")
+    except OSError:
+        page = ""
+    shown = {html.unescape(name) for name in re.findall(r"src='report/([^'/]+\.png)'", page)}
+    paths = [out / "report" / name for name in sorted(shown)]
+    paths += [out / name for name in _images_named(preset) if name.startswith("preset.")]
+    paths += [p for p in out.glob("*.exr") if p.stem in keys]
+    return {p: p.stat().st_ino for p in paths if p.is_file()}
+
+
+def _images_named(value) -> list[str]:
+    """Every string in a TOML document that is the bare name (no folder) of an image file."""
+    if isinstance(value, dict):
+        return [s for v in value.values() for s in _images_named(v)]
+    if isinstance(value, list):
+        return [s for v in value for s in _images_named(v)]
+    if isinstance(value, str) and value and Path(value).name == value:
+        return [value] if Path(value).suffix.lower() in TEXTURE_SUFFIXES else []
+    return []
+
+
+def _panels(cfg, capture, held, problem, result) -> list[ViewPanel]:
+    """Every view (held-out ones too) rendered at the fitted values, with its relative RMSE."""
+    from ..render import Renderer
+
+    n = problem.n_material
+    x = np.asarray(to_physical(problem.free, np.asarray(result.u)[:n]), np.float32)
+    flat = Renderer(capture, cfg.material, problem.free).render(x, cfg.seed + 7, REPORT_SPP)
+    panels, offset = [], 0
+    for i, view in enumerate(capture.views):
+        size = view.image.size
+        render = flat[offset : offset + size].reshape(view.image.shape)
+        offset += size
+        gain = result.values.get(f"gain.{view.name}", [1.0, 1.0, 1.0])
+        render = render * np.asarray(gain, np.float32)
+        w = view.weight[..., None]
+        rmse = math.sqrt(
+            float(np.sum(w * (render - view.image) ** 2))
+            / max(float(np.sum(w * view.image**2)), 1e-30)
+        )
+        panels.append(ViewPanel(view.name, view.image, render, view.weight, i in held, rmse))
+    return panels
+
+
+def masks(material) -> dict[str, np.ndarray]:
+    """Each layer's mask (texture x fbm at the fitted values) baked in UV space."""
+    from ..render import bake_texture
+
+    bsdf = material.bsdf
+    if bsdf.get("type") != "layered":
+        return {}
+    return {
+        f"{name}.mask": bake_texture(bsdf[f"{name}_mask"], 256, 256)
+        for name in bsdf["layers"].split(",")
+        if f"{name}_mask" in bsdf
+    }
+
+
+def _labels(values: dict) -> list[str]:
+    """One label per component of the solver's vector (`glaze.pigment[0]`, `glaze.ior`)."""
+    out = []
+    for key, value in values.items():
+        size = np.size(value)
+        out += [key] if size == 1 else [f"{key}[{i}]" for i in range(size)]
+    return out
+
+
+def _summary(cfg, capture, held, start, result, wall, panels, interrupted, free) -> dict:
+    truth = capture.truth
+    errors, z = {}, {}
+    for key, value in result.values.items():
+        if key in truth:
+            error = np.asarray(value, float) - np.asarray(truth[key], float)
+            errors[key] = error.tolist()
+            std = (result.std or {}).get(key)
+            if std is not None:  # an undetermined (infinite) or zero sd gives no ratio
+                sd = np.asarray(std, float)
+                ratio = np.where(np.isfinite(sd) & (sd > 0), error / np.maximum(sd, 1e-30), np.nan)
+                z[key] = ratio.tolist()
+    return {
+        "config": str(Path(cfg.path).resolve()),
+        "capture": str(cfg.capture),
+        "capture_warnings": list(capture.warnings),
+        "interrupted": interrupted,
+        "phases": [
+            {**p.model_dump(exclude=set(p.model_extra or ())), **p.options.model_dump()}
+            for p in cfg.phases
+        ],
+        "outcomes": [r.as_dict() for r in result.reports],
+        "seed": cfg.seed,
+        "downscale": cfg.downscale,  # the photos' area-averaging before any phase's own
+        "config_identity": config_identity(cfg),
+        # the material's structural choices (lobes, coupling, Fresnel, noise scales)
+        "options": dict(cfg.material.options),
+        "holdout": [capture.views[i].name for i in held],
+        "start": start,
+        "values": result.values,
+        "std": result.std,
+        "correlation": None if result.correlation is None else result.correlation.tolist(),
+        "correlation_labels": _labels(result.values),
+        "poorly_determined": result.poorly_determined,
+        # values that ended at a bound: the truth there, past it, or a local minimum
+        "at_bounds": at_bounds(free, result.values),
+        "truth": {k: truth[k] for k in result.values if k in truth},
+        "error": errors,
+        "error_over_std": z,
+        "views": [{"name": p.name, "rmse": p.rmse, "held_out": p.held_out} for p in panels],
+        "loss": result.loss,
+        "history": result.history,
+        "phase_ends": result.phase_ends,
+        "wall_time_s": wall,
+        "software": software_versions(),
+    }
+
+
+def _finite(value):
+    """JSON-safe: non-finite floats become None (JSON has no NaN or Infinity)."""
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    if isinstance(value, float | np.floating) and not math.isfinite(value):
+        return None
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
