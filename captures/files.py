@@ -144,7 +144,10 @@ def check_output(
         parent = parent.parent
     if not parent.is_dir():
         raise InputError(f"{option} {path}: {parent} is a file, not a folder; choose another path")
-    if not os.access(parent, os.W_OK | os.X_OK):
+    # the effective user's rights (a process acting as another user is refused what it is)
+    if not os.access(
+        parent, os.W_OK | os.X_OK, effective_ids=os.access in os.supports_effective_ids
+    ):
         raise InputError(
             f"{option} {path}: cannot write in {parent} (permission denied); choose another path"
         )

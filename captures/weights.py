@@ -70,7 +70,7 @@ def downscale(image: np.ndarray, weight: np.ndarray, factor: int) -> tuple[np.nd
     w_mean = rows @ weight.astype(np.float64) @ cols.T
     weighted = image.astype(np.float64) * weight[..., None]
     # two matrix products (BLAS): `np.einsum` without a plan looped in Python's C, about 45 s a
-    # 3000x2000 view (helper-35's audit), the time growing with the cube of the side
+    # 3000x2000 view, the time growing with the cube of the side
     by_rows = (rows @ weighted.reshape(h, -1)).reshape(new_h, w, -1)
     sums = cols @ by_rows  # (new_w, w) @ (new_h, w, c): (new_h, new_w, c)
     out = np.where(w_mean[..., None] > 0, sums / np.maximum(w_mean[..., None], 1e-12), 0.0)

@@ -7,7 +7,10 @@
 - `fit.solvers`: the problem and its residuals, one solver per module and their registry,
   schedules, uncertainty.
 - `fit.output`: figures and the HTML report of a run, through one atomic writer.
-- `fit.commands`: one module per command; `fit.cli` is the thin command line over them.
+- `fit.commands`: one module per command (a function each); `fit.cli` parses options and calls
+  them, `fit.console` shows their progress and results.
+- `fit.bench`: one module per benchmark, `fit.bench.run` the `bench` command.
+- `fit.batch`, `fit.cluster`: batches of fits as Ray tasks, and joining or starting Ray.
 - `fit.variant`: choose the Mitsuba variant once (before anything imports Mitsuba).
 
 JAX runs on the CPU unless ``JAX_PLATFORMS`` says otherwise: its work here is the solvers' small

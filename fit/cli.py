@@ -48,6 +48,9 @@ NAME_TOO_LONG = (
     "shorter one"
 )
 
+#: Where a path's file or folder may not be read or written by this user.
+NO_PERMISSION = "permission denied; check its permissions (or choose another path)"
+
 
 def _finite(low: float, high: float) -> Callable[[float], float]:
     """A float option's check: a finite number within [low, high] (click's own range check
@@ -385,6 +388,9 @@ def _run_app(argv: list[str] | None) -> int:
             return 130  # another error (drjit's import: a NameError)
         if isinstance(err, OSError) and err.errno == errno.ENAMETOOLONG:  # a path's long name
             ui.say("error:", "red", f"{err.filename}: {NAME_TOO_LONG}")
+            return 2
+        if isinstance(err, PermissionError) and err.filename:  # a file this user may not use
+            ui.say("error:", "red", f"{err.filename}: {NO_PERMISSION}")
             return 2
         if os.environ.get("LAYERFIT_DEBUG"):
             raise

@@ -23,7 +23,7 @@ from captures.capture import Capture, View
 from captures.geometry import CupShape
 from captures.scene import Camera, Cup, ObjFile, RectLight, Scene, Sphere, bounding_sphere
 
-#: Targets of issue 14: alpha within 5 % relative, ior within 0.03, pigment within 0.02 per
+#: The accuracy targets: alpha within 5 % relative, ior within 0.03, pigment within 0.02 per
 #: channel, and each error within 3 reported standard deviations.
 ALPHA_REL, IOR_ABS, PIGMENT_ABS, MAX_SIGMAS = 0.05, 0.03, 0.02, 3.0
 

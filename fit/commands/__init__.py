@@ -1,2 +1,3 @@
-"""One module per command: `fit` (run a fit config), `synth` (synthetic captures), `inspect`
-(look at a capture), `bench` (speed and accuracy tables). The CLI (`fit/cli.py`) calls them."""
+"""One module per command, each a function usable from Python (docs/commands.md): `fit` (and
+multi-start beside it, `starts`), `render`, `synth`, `inspect`, `export`, `batch`. The command
+line (`fit/cli.py`) parses options and calls them; `bench` is `fit.bench.run`."""

@@ -105,7 +105,7 @@ def run_fit(
         raise _partial(cfg, out, prepared, checkpoint, began) from err
     except KeyboardInterrupt:
         raise _partial(cfg, out, prepared, checkpoint, began) from None
-    wall = time.perf_counter() - began + checkpoint.elapsed_before  # earlier sessions too
+    wall = time.perf_counter() - began + checkpoint.elapsed_before  # earlier runs of it too
     with _finish_first(), writing(out, checkpoint):
         summary = write_run(cfg, out, capture, held, problem, start, result, wall)
         checkpoint.remove()

@@ -40,7 +40,7 @@ class Checkpoint:
         #: What fit this is (JSON values: its free keys, views, phases, seed), saved with every
         #: state; a resume compares it (`fit.commands.fit.check_resume`).
         self.identity: dict | None = None
-        #: Seconds of work before this process (a resumed run's earlier sessions), and when this
+        #: Seconds of work before this process (a resumed run's earlier processes), and when this
         #: one began: each state records their sum (`elapsed_s`), so a resumed run's wall time
         #: is the whole run's.
         self.elapsed_before = 0.0
@@ -105,7 +105,7 @@ class Checkpoint:
         return self._unsaved
 
     def elapsed(self) -> float:
-        """Seconds of work on this run so far, earlier sessions included."""
+        """Seconds of work on this run so far, earlier processes included."""
         return self.elapsed_before + time.monotonic() - self.began
 
     def load(self) -> dict | None:

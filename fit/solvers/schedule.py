@@ -110,7 +110,7 @@ class Phase(BaseModel):
 #: first one left a weakly determined parameter: alpha 0.02 on a 160x120 sphere ended +12 % for
 #: one seed, and +24 to +127 % at alpha 0.01-0.02 on 96x72 (BENCHMARKS, "Recovery over the
 #: range"). With one `gn` phase of 40 steps the Cycles sphere's alpha came out -2.3 and -2.9 %
-#: (issue 5's bar: 2 %), with 80 +0.8 % (one run, 66 s of fit). The averaged phase keeps one
+#: (the target: 2 %), with 80 +0.8 % (one run, 66 s of fit). The averaged phase keeps one
 #: sample count: `primal_spp = "auto"` there (256 / 16 against clean targets) gave sharper
 #: answers whose reported sd no longer covered them (the recovery sweep: 146 of 150 errors
 #: within 3 sd, was 150; with the per-pixel meat 149 of 150 and 25 of 30 cases within targets
@@ -130,7 +130,7 @@ def default_schedule(free: list[str]) -> tuple[Phase, ...]:
     """`DEFAULT_SCHEDULE` for these free keys: with a mask threshold free, its Adam phase is
     split, the first 30 steps holding the thresholds (colours first; `AdamOptions.hold`). On the
     cup, one seed's glaze threshold otherwise walked out of the noise's range in Adam's first
-    20 steps, where no gradient brings it back (BENCHMARKS, "The main job over the sessions")."""
+    20 steps, where no gradient brings it back (BENCHMARKS, "The main job")."""
     if not any(fnmatch.fnmatchcase(k, MASK_THRESHOLDS) for k in free):
         return DEFAULT_SCHEDULE
     adam, *rest = DEFAULT_SCHEDULE

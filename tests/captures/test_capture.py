@@ -948,7 +948,7 @@ def test_a_cut_out_mask_is_read_from_its_alpha(tmp_path):
 
 
 def test_another_exporters_peer_scene_is_read_or_named(tmp_path):
-    """What another exporter writes (helper-33's audit): a Windows path (`renders\\view.exr`,
+    """What another exporter writes: a Windows path (`renders\\view.exr`,
     refused as "no such image file"), a material with inputs this version does not read (a
     coat: silently scored as if absent; now a warning), a vertical field of view only, a render
     at another size (the error named neither the field nor the fix), UTF-16 text (a decode

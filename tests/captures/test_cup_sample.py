@@ -1,4 +1,4 @@
-"""The bundled cup capture (captures/samples/cup, issue 12): what the main job fits is what its
+"""The bundled cup capture (captures/samples/cup): what the main job fits is what its
 README promises: 4 to 6 thin-lens views as 16-bit PNG with different exposures, under 1 %
 clipped pixels, under 2 MB, and the truth of every parameter the main job frees."""
 

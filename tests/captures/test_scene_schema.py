@@ -849,7 +849,7 @@ def test_a_folder_given_for_an_output_file_names_the_fix(tmp_path):
 )
 def test_a_focus_distance_needs_a_thin_lens(tmp_path, extra, message):
     """`focus_distance` on a pinhole or an orthographic camera was dropped without a word (a
-    user who meant a thin lens got a pinhole; helper-34's audit); a thin lens's reads."""
+    user who meant a thin lens got a pinhole); a thin lens's reads."""
     camera = {"origin": [0, -4, 0], "target": [0, 0, 0], "width": 8, "height": 6}
     camera |= {} if extra.get("type") else {"fov_x_deg": 40}
     table = scene_table(cameras=[camera | extra])

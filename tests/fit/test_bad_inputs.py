@@ -5,13 +5,14 @@ A few valid but unusual inputs succeed; Ctrl-C is one line and exit status 130."
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
 import os
 import re
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -22,13 +23,9 @@ from fit.cli import main
 
 ROOT = Path(__file__).resolve().parents[2]
 
-FIT = """capture = "cap"
-[material]
-type = "glaze"
-pigment = [0.3, 0.3, 0.3]
-roughness = 0.1
-ior = 1.5
-[fit]
+MATERIAL = '[material]\ntype = "glaze"\npigment = [0.3, 0.3, 0.3]\nroughness = 0.1\nior = 1.5\n'
+FIT = f"""capture = "cap"
+{MATERIAL}[fit]
 free = ["glaze.roughness"]
 uncertainty_spp = 4
 [[fit.phases]]
@@ -101,66 +98,76 @@ def run(args: list, capsys) -> tuple[int, str, str]:
 Case = tuple[str, Callable[[Path], list], tuple[str, ...]]
 
 
-def render_cfg(old: str, new: str, *extra) -> Callable[[Path], list]:
-    def make(d: Path) -> list:
-        edit(d / "render.toml", old, new)
-        return ["render", d / "render.toml", "--out", d / "o.png", *extra]
-
-    return make
+Setup = Callable[[Path], object]
 
 
-def render_args(*extra, setup: Callable[[Path], None] | None = None) -> Callable[[Path], list]:
-    def make(d: Path) -> list:
-        if setup:
-            setup(d)
-        return ["render", d / "render.toml", *[a(d) if callable(a) else a for a in extra]]
-
-    return make
+def out(rel: str) -> Callable[[Path], Path]:
+    return lambda d: d / rel
 
 
-def manifest(old: str, new: str, setup: Callable[[Path], None] | None = None):
-    def make(d: Path) -> list:
-        if setup:
-            setup(d)
-        edit(d / "cap" / "capture.toml", old, new)
-        return ["inspect", d / "cap", "--no-silhouette", "--sheet", d / "s.png"]
+def edited(rel: str, old: str, new: str, before: Setup | None = None) -> Setup:
+    """A setup step: `before`, then `old` replaced by `new` in the file `rel` of the work folder."""
 
-    return make
+    def setup(d: Path) -> None:
+        if before:
+            before(d)
+        edit(d / rel, old, new)
+
+    return setup
 
 
-def inspect_args(*extra, setup: Callable[[Path], None] | None = None):
+def command(*args, setup: Setup | None = None) -> Callable[[Path], list]:
+    """`setup`, then the arguments `args` (a callable one is called with the work folder)."""
+
     def make(d: Path) -> list:
         if setup:
             setup(d)
-        return ["inspect", *[a(d) if callable(a) else a for a in extra]]
+        return [a(d) if callable(a) else a for a in args]
 
     return make
 
 
-def synth_args(*extra, setup: Callable[[Path], None] | None = None):
-    def make(d: Path) -> list:
-        if setup:
-            setup(d)
-        return ["synth", d / "render.toml", *[a(d) if callable(a) else a for a in extra]]
-
-    return make
+def render_args(*extra, setup: Setup | None = None) -> Callable[[Path], list]:
+    return command("render", out("render.toml"), *extra, setup=setup)
 
 
-def fit_cfg(old: str, new: str, *extra):
-    def make(d: Path) -> list:
-        edit(d / "fit.toml", old, new)
-        return ["fit", d / "fit.toml", "--out", d / "run", *extra]
-
-    return make
+def render_cfg(old: str, new: str, *extra, setup: Setup | None = None) -> Callable[[Path], list]:
+    return render_args("--out", out("o.png"), *extra, setup=edited("render.toml", old, new, setup))
 
 
-def fit_args(*extra, setup: Callable[[Path], None] | None = None):
-    def make(d: Path) -> list:
-        if setup:
-            setup(d)
-        return ["fit", d / "fit.toml", *[a(d) if callable(a) else a for a in extra]]
+def manifest(old: str, new: str, setup: Setup | None = None) -> Callable[[Path], list]:
+    return inspect_args(
+        out("cap"),
+        "--no-silhouette",
+        "--sheet",
+        out("s.png"),
+        setup=edited("cap/capture.toml", old, new, setup),
+    )
 
-    return make
+
+def inspect_args(*extra, setup: Setup | None = None) -> Callable[[Path], list]:
+    return command("inspect", *extra, setup=setup)
+
+
+def synth_args(*extra, setup: Setup | None = None) -> Callable[[Path], list]:
+    return command("synth", out("render.toml"), *extra, setup=setup)
+
+
+def fit_args(*extra, setup: Setup | None = None) -> Callable[[Path], list]:
+    return command("fit", out("fit.toml"), *extra, setup=setup)
+
+
+def fit_cfg(old: str, new: str, *extra, setup: Setup | None = None) -> Callable[[Path], list]:
+    return fit_args("--out", out("run"), *extra, setup=edited("fit.toml", old, new, setup))
+
+
+def manifest_fit(old: str, new: str, free: str = "glaze.roughness") -> Callable[[Path], list]:
+    """A fit of `free` alone, after `old` is replaced by `new` in the capture's manifest."""
+    return fit_cfg(
+        'free = ["glaze.roughness"]',
+        f'free = ["{free}"]',
+        setup=edited("cap/capture.toml", old, new),
+    )
 
 
 def dili(file: str, text: str | None):
@@ -210,25 +217,34 @@ def nan_checkpoint(d: Path) -> None:
         np.savez(f, meta=meta, u=nan, u_phase=nan)
 
 
-def out(rel: str):
-    return lambda d: d / rel
+def image(rel: str, value: float, shape: tuple[int, int] = (4, 8)) -> Setup:
+    """A setup step: an image of `shape` pixels, each `value`, written under the work folder."""
+    return lambda d: write_image(d / rel, np.full((*shape, 3), value, np.float32))
 
 
-def view_image(value: float):
-    def setup(d: Path) -> None:
-        write_image(d / "cap" / "view_00.exr", np.full((12, 16, 3), value, np.float32))
-
-    return setup
+def view_image(value: float) -> Setup:
+    return image("cap/view_00.exr", value, (12, 16))
 
 
-def obj_case(text: str) -> Callable[[Path], list]:
-    """A render of the config with its geometry the OBJ `text` (written as m.obj)."""
+def obj_case(text: str | bytes, setup: Setup | None = None) -> Callable[[Path], list]:
+    """A render of the config with its geometry the OBJ `text` (written as m.obj), after `setup`."""
 
-    def make(d: Path) -> list:
-        (d / "m.obj").write_text(text)
-        return render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
+    def write_obj(d: Path) -> None:
+        if setup:
+            setup(d)
+        write("m.obj", text)(d)
 
-    return make
+    return render_cfg('geometry = "sphere"', 'geometry = "m.obj"', setup=write_obj)
+
+
+def bad_obj(name: str, text: str | bytes, *expected: str, setup: Setup | None = None) -> Case:
+    """The case `name`: a render of the OBJ `text`, whose error names m.obj and `expected`."""
+    return name, obj_case(text, setup), ("m.obj", *expected)
+
+
+def envmap(file: str, setup: Setup) -> Callable[[Path], list]:
+    """A render lit by the environment map `file`, which `setup` writes."""
+    return render_cfg(ENV, f'environment = {{type = "envmap", file = "{file}"}}', setup=setup)
 
 
 def truncated_png(d: Path, shape=(4, 8)) -> bytes:
@@ -244,6 +260,8 @@ GARBAGE = b"\x89not an image at all\xff\xfe"
 TEX = "pigment = [0.1, 0.22, 0.55]"
 ENV = "environment = [0.05, 0.05, 0.06]"
 RD = "[render]\nspp = 2"
+FACE = "f 1/1 2/2 3/3"
+NO_UVS = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"
 
 CASES: list[Case] = [
     # --- render configs: file-level problems
@@ -315,161 +333,112 @@ CASES: list[Case] = [
         render_cfg('geometry = "sphere"', 'geometry = "none.obj"'),
         ("render.toml", "geometry", "none.obj"),
     ),
-    (
-        "obj-out-of-range",
-        obj_case(OBJ.replace("3/3", "9/3")),
-        ("m.obj", "line 7", "range"),
+    bad_obj("obj-out-of-range", OBJ.replace("3/3", "9/3"), "line 7", "range"),
+    bad_obj("obj-vertex-two-numbers", OBJ.replace("v 0 0 0", "v 0 0"), "line 1", "2 numbers"),
+    bad_obj("obj-vertex-nan", OBJ.replace("v 1 0 0", "v 1 0 nan"), "line 2", "not finite"),
+    bad_obj("obj-relative-indices", OBJ.replace(FACE, "f -3/-3 -2/-2 -1/-1"), "line 7", "relative"),
+    bad_obj("obj-zero-area", OBJ.replace("v 0 1 0", "v 2 0 0"), "zero area"),
+    bad_obj(  # a plain glaze renders without UVs; its noise needs them
+        "obj-no-uvs-noisy-glaze",
+        NO_UVS,
+        "texture coordinates",
+        "glaze.pigment_noise",
+        "unwrap",
+        setup=edited("render.toml", 'type = "glaze"', 'type = "glaze"\npigment_noise = 0.2'),
     ),
-    (
-        "obj-vertex-two-numbers",
-        obj_case(OBJ.replace("v 0 0 0", "v 0 0")),
-        ("m.obj", "line 1", "2 numbers"),
+    bad_obj(  # was painted per triangle (barycentric UVs), silently
+        "obj-no-uvs-textured-pigment",
+        NO_UVS,
+        "texture coordinates",
+        "glaze.pigment",
+        "unwrap",
+        setup=edited("render.toml", TEX, 'pigment = "tex.png"'),
     ),
-    (
-        "obj-vertex-nan",
-        obj_case(OBJ.replace("v 1 0 0", "v 1 0 nan")),
-        ("m.obj", "line 2", "not finite"),
-    ),
-    (
-        "obj-relative-indices",
-        obj_case(OBJ.replace("f 1/1 2/2 3/3", "f -3/-3 -2/-2 -1/-1")),
-        ("m.obj", "line 7", "relative"),
-    ),
-    (
-        "obj-zero-area",
-        obj_case(OBJ.replace("v 0 1 0", "v 2 0 0")),
-        ("m.obj", "zero area"),
-    ),
-    (
-        "obj-no-uvs-noisy-glaze",  # a plain glaze renders without UVs; its noise needs them
-        lambda d: (
-            edit(d / "render.toml", 'type = "glaze"', 'type = "glaze"\npigment_noise = 0.2'),
-            obj_case("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")(d),
-        )[-1],
-        ("m.obj", "texture coordinates", "glaze.pigment_noise", "unwrap"),
-    ),
-    (
-        "obj-no-uvs-textured-pigment",  # was painted per triangle (barycentric UVs), silently
-        lambda d: (
-            edit(d / "render.toml", "pigment = [0.1, 0.22, 0.55]", 'pigment = "tex.png"'),
-            obj_case("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")(d),
-        )[-1],
-        ("m.obj", "texture coordinates", "glaze.pigment", "unwrap"),
-    ),
-    (
-        "obj-garbage",
-        lambda d: (
-            (d / "m.obj").write_bytes(GARBAGE)
-            and render_cfg('geometry = "sphere"', 'geometry = "m.obj"')(d)
-        ),
-        ("m.obj", "not an OBJ text file"),
-    ),
+    bad_obj("obj-garbage", GARBAGE, "not an OBJ text file"),
     (
         "obj-is-folder",
-        lambda d: (
-            (d / "dir.obj").mkdir() or render_cfg('geometry = "sphere"', 'geometry = "dir.obj"')(d)
+        render_cfg(
+            'geometry = "sphere"', 'geometry = "dir.obj"', setup=write("dir.obj", folder=True)
         ),
         ("dir.obj", "folder"),
     ),
-    (
-        "obj-bad-index",
-        obj_case(OBJ.replace("3/3", "x/3")),
-        ("m.obj", "integer"),
-    ),
-    (  # the renderer's loader: "excessively long line" (an n-gon's face, a long comment)
+    bad_obj("obj-bad-index", OBJ.replace("3/3", "x/3"), "integer"),
+    # the renderer's loader: "excessively long line" (an n-gon's face, a long comment)
+    bad_obj(
         "obj-long-line",
-        obj_case(OBJ + "# " + "x" * 1100 + "\n"),
-        ("m.obj", "line 8 is 1,102 characters long", "triangulate"),
+        OBJ + "# " + "x" * 1100 + "\n",
+        "line 8 is 1,102 characters long",
+        "triangulate",
     ),
-    (  # the renderer's loader: "could not parse line"
-        "obj-vt-one-number",
-        obj_case(OBJ.replace("vt 0 0", "vt 0")),
-        ("m.obj", "line 4", "takes 2 to 3"),
-    ),
-    (  # the renderer's loader: "invalid vertex normal data"
+    # the renderer's loader: "could not parse line"
+    bad_obj("obj-vt-one-number", OBJ.replace("vt 0 0", "vt 0"), "line 4", "takes 2 to 3"),
+    # the renderer's loader: "invalid vertex normal data"
+    bad_obj(
         "obj-zero-normal",
-        obj_case(OBJ.replace("f 1/1 2/2 3/3", "vn 0 0 0\nf 1/1/1 2/2/1 3/3/1")),
-        ("m.obj", "line 7", "'vn 0 0 0' has no direction", "face_normals = true"),
+        OBJ.replace(FACE, "vn 0 0 0\nf 1/1/1 2/2/1 3/3/1"),
+        "line 7",
+        "'vn 0 0 0' has no direction",
+        "face_normals = true",
     ),
-    (  # rendered with uninitialised normals (1e21), black or lit at random, without a word
+    # rendered with uninitialised normals (1e21), black or lit at random, without a word
+    bad_obj(
         "obj-normals-not-on-the-faces",
-        obj_case(OBJ.replace("f 1/1 2/2 3/3", "vn 0 0 1\nf 1/1 2/2 3/3")),
-        ("m.obj", "3 of its 3 face corners name none", "face_normals = true"),
+        OBJ.replace(FACE, "vn 0 0 1\n" + FACE),
+        "3 of its 3 face corners name none",
+        "face_normals = true",
     ),
-    (
+    bad_obj(
         "obj-four-indices-a-corner",
-        obj_case(OBJ.replace("f 1/1 2/2 3/3", "vn 0 0 1\nf 1/1/1/1 2/2/1/1 3/3/1/1")),
-        ("m.obj", "line 8", "'1/1/1/1' has 4 indices"),
+        OBJ.replace(FACE, "vn 0 0 1\nf 1/1/1/1 2/2/1/1 3/3/1/1"),
+        "line 8",
+        "'1/1/1/1' has 4 indices",
     ),
-    (  # the renderer skipped the marked first vertex: every face moved to the next ones
-        "obj-byte-order-mark",
-        obj_case("\ufeff" + OBJ),
-        ("m.obj", "byte-order mark", "without BOM"),
-    ),
+    # the renderer skipped the marked first vertex: every face moved to the next ones
+    bad_obj("obj-byte-order-mark", "\ufeff" + OBJ, "byte-order mark", "without BOM"),
     (
         "texture-garbage",
-        lambda d: (
-            (d / "tex.png").write_bytes(GARBAGE) and render_cfg(TEX, 'pigment = "tex.png"')(d)
-        ),
+        render_cfg(TEX, 'pigment = "tex.png"', setup=write("tex.png", GARBAGE)),
         ("render.toml", "material.pigment", "tex.png"),
     ),
     (
         "texture-folder",
-        lambda d: (d / "dir.png").mkdir() or render_cfg(TEX, 'pigment = "dir.png"')(d),
+        render_cfg(TEX, 'pigment = "dir.png"', setup=write("dir.png", folder=True)),
         ("render.toml", "material.pigment"),
     ),
     ("texture-missing", render_cfg(TEX, 'pigment = "none.png"'), ("render.toml", "none.png")),
     (
         "texture-not-image-type",
-        lambda d: (d / "tex.txt").write_text("1") and render_cfg(TEX, 'pigment = "tex.txt"')(d),
+        render_cfg(TEX, 'pigment = "tex.txt"', setup=write("tex.txt", "1")),
         ("render.toml", "tex.txt", "use .exr"),
     ),
     (
         "envmap-garbage",
-        lambda d: (
-            (d / "sky.exr").write_bytes(GARBAGE)
-            and render_cfg(ENV, 'environment = {type = "envmap", file = "sky.exr"}')(d)
-        ),
+        envmap("sky.exr", write("sky.exr", GARBAGE)),
         ("render.toml", "scene.environment.file", "sky.exr"),
     ),
     (
         "envmap-truncated",
-        lambda d: (
-            (d / "sky.png").write_bytes(truncated_png(d))
-            and render_cfg(ENV, 'environment = {type = "envmap", file = "sky.png"}')(d)
-        ),
+        envmap("sky.png", lambda d: (d / "sky.png").write_bytes(truncated_png(d))),
         ("render.toml", "scene.environment.file", "sky.png", "truncated"),
     ),
     (
         "envmap-nan",
-        lambda d: (
-            write_image(d / "sky.exr", np.full((4, 8, 3), np.nan, np.float32))
-            and render_cfg(ENV, 'environment = {type = "envmap", file = "sky.exr"}')(d)
-        ),
+        envmap("sky.exr", image("sky.exr", np.nan)),
         ("render.toml", "scene.environment.file", "sky.exr", "not finite"),
     ),
     (
         "envmap-negative",  # rendered as negative light before
-        lambda d: (
-            write_image(d / "sky.exr", np.full((4, 8, 3), -1.0, np.float32))
-            and render_cfg(ENV, 'environment = {type = "envmap", file = "sky.exr"}')(d)
-        ),
+        envmap("sky.exr", image("sky.exr", -1.0)),
         ("render.toml", "scene.environment.file", "sky.exr", "negative radiance"),
     ),
     (
         "texture-pigment-above-one",  # a float image: a pigment of 3 rendered without a word
-        lambda d: (
-            write_image(d / "pig.exr", np.full((4, 8, 3), 3.0, np.float32))
-            and render_cfg(TEX, 'pigment = "pig.exr"')(d)
-        ),
+        render_cfg(TEX, 'pigment = "pig.exr"', setup=image("pig.exr", 3.0)),
         ("render.toml", "material.pigment", "pig.exr", "from 3 to 3", "[0.0, 1.0]", "rescale"),
     ),
     (
         "envmap-folder",
-        lambda d: (
-            (d / "dir.exr").mkdir()
-            or render_cfg(ENV, 'environment = {type = "envmap", file = "dir.exr"}')(d)
-        ),
+        envmap("dir.exr", write("dir.exr", folder=True)),
         ("render.toml", "scene.environment.file", "folder"),
     ),
     (
@@ -714,11 +683,13 @@ CASES: list[Case] = [
     # --- capture manifests
     (
         "manifest-no-views",
-        lambda d: (
-            (d / "cap" / "capture.toml").write_text(
+        inspect_args(
+            out("cap"),
+            "--sheet",
+            out("s.png"),
+            setup=lambda d: (d / "cap" / "capture.toml").write_text(
                 (d / "cap" / "capture.toml").read_text().split("[[views]]")[0]
-            )
-            and ["inspect", d / "cap", "--sheet", d / "s.png"]
+            ),
         ),
         ("capture.toml", "views", "[[views]]"),
     ),
@@ -877,17 +848,21 @@ CASES: list[Case] = [
     ),
     (
         "manifest-not-utf8",
-        lambda d: (
-            (d / "cap" / "capture.toml").write_bytes(b"\xff\xfe")
-            and ["inspect", d / "cap", "--sheet", d / "s.png"]
+        inspect_args(
+            out("cap"), "--sheet", out("s.png"), setup=write("cap/capture.toml", b"\xff\xfe")
         ),
         ("capture.toml", "UTF-8"),
     ),
     (
         "manifest-is-folder",
-        lambda d: (
-            ((d / "cap" / "capture.toml").unlink(), (d / "cap" / "capture.toml").mkdir())
-            and ["inspect", d / "cap", "--sheet", d / "s.png"]
+        inspect_args(
+            out("cap"),
+            "--sheet",
+            out("s.png"),
+            setup=lambda d: (
+                (d / "cap" / "capture.toml").unlink(),
+                (d / "cap" / "capture.toml").mkdir(),
+            ),
         ),
         ("capture.toml", "folder"),
     ),
@@ -982,9 +957,8 @@ CASES: list[Case] = [
     ),
     (
         "dili-empty-mask",
-        lambda d: (
-            write_image(d / "dili" / "mask.png", np.zeros((20, 24, 3)))
-            and ["inspect", d / "dili", "--sheet", d / "s.png"]
+        inspect_args(
+            out("dili"), "--sheet", out("s.png"), setup=image("dili/mask.png", 0.0, (20, 24))
         ),
         ("mask.png", "fewer than 10"),
     ),
@@ -1006,74 +980,39 @@ CASES: list[Case] = [
     ),
     (
         "fit-free-disabled-layer",
-        lambda d: (
-            (d / "fit.toml").write_text(
-                FIT.replace(
-                    '[material]\ntype = "glaze"\npigment = [0.3, 0.3, 0.3]\nroughness = 0.1\n'
-                    "ior = 1.5\n",
-                    '[material]\ntype = "layered"\n[[material.layers]]\n'
-                    'name = "clay"\ntype = "oren_nayar"\n[[material.layers]]\nname = "glaze"\n'
-                    'type = "glaze"\nenabled = false\n[material.layers.mask]\nthreshold = 0.3\n',
-                )
-            )
-            and ["fit", d / "fit.toml", "--out", d / "run"]
+        fit_cfg(
+            MATERIAL,
+            '[material]\ntype = "layered"\n[[material.layers]]\n'
+            'name = "clay"\ntype = "oren_nayar"\n[[material.layers]]\nname = "glaze"\n'
+            'type = "glaze"\nenabled = false\n[material.layers.mask]\nthreshold = 0.3\n',
         ),
         ("fit.toml", "fit.free", "'glaze'", "clay"),
     ),
     (
         "fit-truth-wrong-length",
-        lambda d: (
-            edit(
-                d / "cap" / "capture.toml",
-                '"glaze.roughness" = 0.0625',
-                '"glaze.roughness" = [0.0625, 0.1]',
-            )
-            or ["fit", d / "fit.toml", "--out", d / "run"]
-        ),
+        manifest_fit('"glaze.roughness" = 0.0625', '"glaze.roughness" = [0.0625, 0.1]'),
         ("capture.toml", "truth.glaze.roughness"),
     ),
     (
         "fit-truth-out-of-bounds",  # scored, it read as the fit's error (-7.66)
-        lambda d: (
-            edit(d / "cap" / "capture.toml", '"glaze.ior" = 1.52', '"glaze.ior" = 9.0')
-            or fit_cfg('free = ["glaze.roughness"]', 'free = ["glaze.ior"]')(d)
-        ),
+        manifest_fit('"glaze.ior" = 1.52', '"glaze.ior" = 9.0', "glaze.ior"),
         ("capture.toml", "truth.glaze.ior", "outside its bounds [1.01, 3.0]"),
     ),
     (
         "fit-truth-scalar-for-rgb",
-        lambda d: (
-            edit(
-                d / "cap" / "capture.toml",
-                '"glaze.pigment" = [0.1, 0.22, 0.55]',
-                '"glaze.pigment" = 0.2',
-            )
-            or fit_cfg('free = ["glaze.roughness"]', 'free = ["glaze.pigment"]')(d)
+        manifest_fit(
+            '"glaze.pigment" = [0.1, 0.22, 0.55]', '"glaze.pigment" = 0.2', "glaze.pigment"
         ),
         ("capture.toml", "truth.glaze.pigment", "3 numbers"),
     ),
     (
         "fit-truth-options-bad-choice",
-        lambda d: (
-            edit(
-                d / "cap" / "capture.toml",
-                '"glaze.diffuse" = "qualitative"',
-                '"glaze.diffuse" = "x"',
-            )
-            or ["fit", d / "fit.toml", "--out", d / "run"]
-        ),
+        manifest_fit('"glaze.diffuse" = "qualitative"', '"glaze.diffuse" = "x"'),
         ("capture.toml", "truth_options.glaze.diffuse", "qualitative, eon"),
     ),
     (
         "fit-truth-options-unknown-option",
-        lambda d: (
-            edit(
-                d / "cap" / "capture.toml",
-                '"glaze.diffuse" = "qualitative"',
-                '"glaze.lobe" = "eon"',
-            )
-            or ["fit", d / "fit.toml", "--out", d / "run"]
-        ),
+        manifest_fit('"glaze.diffuse" = "qualitative"', '"glaze.lobe" = "eon"'),
         ("capture.toml", "truth_options.glaze.lobe", "diffuse"),
     ),
     (
@@ -1203,10 +1142,7 @@ CASES: list[Case] = [
     ),
     (  # was an internal error at the first render ("not in the scene ... nothing to fit")
         "fit-free-environment-scale-without-one",
-        lambda d: (
-            edit(d / "cap" / "capture.toml", "[0.05, 0.05, 0.06]", "[0, 0, 0]"),
-            fit_cfg('free = ["glaze.roughness"]', 'free = ["environment.scale"]')(d),
-        )[-1],
+        manifest_fit("[0.05, 0.05, 0.06]", "[0, 0, 0]", "environment.scale"),
         ("fit.toml", "fit.free: environment.scale", "no environment", "drop the key"),
     ),
     (
@@ -1216,14 +1152,7 @@ CASES: list[Case] = [
     ),
     (
         "fit-material-missing-preset",
-        lambda d: (
-            (d / "fit.toml").write_text(
-                (d / "fit.toml").read_text().split("[material]")[0]
-                + 'material = "nope.toml"\n[fit]'
-                + (d / "fit.toml").read_text().split("[fit]")[1]
-            ),
-            ["fit", d / "fit.toml", "--out", d / "run"],
-        )[-1],
+        fit_cfg(MATERIAL, 'material = "nope.toml"\n'),
         ("fit.toml", "nope.toml", "no such preset file"),
     ),
     (
@@ -1398,7 +1327,25 @@ def test_bad_input_is_one_line_and_changes_nothing(base, tmp_path, capsys, make,
     assert snapshot(work) == before  # inputs byte-identical, no partial or new file
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root may write in a read-only folder")
+@contextlib.contextmanager
+def without_root() -> Iterator[None]:
+    """Inside, this process acts as the user `nobody` where it runs as root (root writes into a
+    read-only folder: CI runs as root); elsewhere nothing changes."""
+    if os.geteuid() != 0:
+        yield
+        return
+    import pwd
+
+    nobody = pwd.getpwnam("nobody")
+    os.setegid(nobody.pw_gid)
+    os.seteuid(nobody.pw_uid)
+    try:
+        yield
+    finally:
+        os.seteuid(0)
+        os.setegid(0)
+
+
 @pytest.mark.parametrize(
     "make",
     [
@@ -1409,17 +1356,31 @@ def test_bad_input_is_one_line_and_changes_nothing(base, tmp_path, capsys, make,
     ],
     ids=["render", "synth", "inspect", "fit"],
 )
-def test_read_only_output_folder(base, tmp_path, capsys, make):
-    work = tmp_path / "w"
-    shutil.copytree(base, work)
-    (work / "ro").mkdir()
-    (work / "ro").chmod(0o555)
-    try:
-        code, _, stderr = run(make(work), capsys)
-    finally:
-        (work / "ro").chmod(0o755)
-    assert code == 2 and len(stderr.strip().splitlines()) == 1 and "ro" in stderr, stderr
-    assert not any((work / "ro").iterdir())
+def test_read_only_output_folder(base, capsys, make):
+    import tempfile
+
+    import fit.commands.fit  # every module the commands import on the way (read as root)
+    import fit.commands.inspect
+    import fit.commands.render
+    import fit.commands.synth  # noqa: F401
+
+    # a folder `nobody` may read (pytest's own are its owner's alone), its `ro` read-only
+    with tempfile.TemporaryDirectory() as folder:
+        work = Path(folder) / "w"
+        shutil.copytree(base, work)
+        for path in [Path(folder), work, *work.rglob("*")]:
+            path.chmod(0o755 if path.is_dir() else 0o644)
+        (work / "ro").mkdir()
+        (work / "ro").chmod(0o555)
+        try:
+            with without_root():
+                assert not os.access(work / "ro", os.W_OK, effective_ids=True)  # as it tests
+                code, _, stderr = run(make(work), capsys)
+        finally:
+            (work / "ro").chmod(0o755)
+        assert code == 2 and len(stderr.strip().splitlines()) == 1 and "ro" in stderr, stderr
+        assert "cannot write" in stderr or "Permission denied" in stderr, stderr
+        assert not any((work / "ro").iterdir())
 
 
 def test_corpus_is_large_and_ids_unique():
@@ -1911,29 +1872,18 @@ def test_synth_warns_of_clipped_photographs(base, tmp_path, caplog):
     from fit.config import load_render_config
 
     cfg = load_render_config(base / "render.toml")
-    with caplog.at_level(logging.WARNING):
-        synthesize(
-            cfg.scene,
-            cfg.material,
-            tmp_path / "bright",
-            2,
-            fmt="png",
-            degradation=Degradation(base_ev=6.0),
-        )
-    assert any(
-        "clip" in r.getMessage() and "--exposure-base" in r.getMessage() for r in caplog.records
-    )
-    caplog.clear()
-    with caplog.at_level(logging.WARNING):
-        synthesize(
-            cfg.scene,
-            cfg.material,
-            tmp_path / "dim",
-            2,
-            fmt="png",
-            degradation=Degradation(base_ev=-3.0),
-        )
-    assert not [r for r in caplog.records if "clip" in r.getMessage()]
+
+    def warnings(name: str, base_ev: float) -> list[str]:
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            degradation = Degradation(base_ev=base_ev)
+            synthesize(
+                cfg.scene, cfg.material, tmp_path / name, 2, fmt="png", degradation=degradation
+            )
+        return [r.getMessage() for r in caplog.records]
+
+    assert any("clip" in m and "--exposure-base" in m for m in warnings("bright", 6.0))
+    assert not [m for m in warnings("dim", -3.0) if "clip" in m]
 
 
 def test_inspect_in_a_capture_folder_names_its_default_sheet(base, tmp_path, capsys, monkeypatch):

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fit.commands.bench import sphere_problem
+from fit.bench import sphere_problem
 from fit.material import resolve
 from fit.solvers import solve
 from materials.params import EMITTER_PARAMS, GLAZE

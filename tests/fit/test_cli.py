@@ -102,7 +102,7 @@ def test_missing_and_invalid_files(tmp_path):
 
 def test_bench_table_runs():
     """The benchmark command's table is complete (its timings are reported, never asserted)."""
-    from fit.commands.bench import bsdf_speed_table
+    from fit.bench import bsdf_speed_table
 
     table = bsdf_speed_table(spp=1, repeats=1)
     assert [row[0] for row in table.rows][:2] == ["principled", "glaze paper/schlick"]
@@ -132,7 +132,7 @@ def test_a_malformed_results_file_is_one_line(tmp_path):
     import pytest
 
     from captures.errors import InputError
-    from fit.commands.bench import _resumed
+    from fit.bench import resumed
 
     setting = {"size": [8, 6]}
     path = tmp_path / "r.json"
@@ -143,16 +143,16 @@ def test_a_malformed_results_file_is_one_line(tmp_path):
     ):
         path.write_text(json.dumps({"setting": setting, "runs": entries}))
         with pytest.raises(InputError, match=message):
-            _resumed(path, setting, "runs", "another setting", False)
+            resumed(path, setting, "runs", "another setting", False)
     path.write_text(json.dumps({"setting": setting, "runs": {"a": {"seconds": 1.0}}}))
-    assert _resumed(path, setting, "runs", "another setting", False) == {"a": {"seconds": 1.0}}
+    assert resumed(path, setting, "runs", "another setting", False) == {"a": {"seconds": 1.0}}
 
 
 def test_bench_tables_name_the_cpu_family_and_vector_unit():
     """Two VMs both called "AMD EPYC" ran the same fits 4x apart (AVX-512 or not): a table's
     machine line says the first processor's family, model and widest vector unit, and falls
     back to the model name alone, or the platform's, where /proc/cpuinfo has less."""
-    from fit.commands.bench import machine
+    from fit.bench import machine
 
     two = (
         "processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 26\nmodel\t\t: 2\n"

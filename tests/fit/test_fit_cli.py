@@ -90,7 +90,7 @@ def test_fit_command_writes_a_run_folder(tmp_path):
 def test_a_value_that_ends_at_its_bound_is_named_with_the_way_out(tmp_path):
     """ior started at its lower bound and barely moved (two tiny Adam steps): the results, the
     summary and the report say it ended there, what that can mean (a local minimum among
-    them: an audit's clipped capture ended at ior 1.011 with the pigment 29 sd off) and that
+    them: a clipped capture ended at ior 1.011 with the pigment 29 sd off) and that
     more starts tell it apart; its sd is not the slope's near-zero one."""
     small_capture(tmp_path / "cap")
     (tmp_path / "fit.toml").write_text(
@@ -217,6 +217,22 @@ def test_ctrl_c_while_starting_is_one_line_and_exit_130(tmp_path, delay):
     assert not out.exists() or (out / "checkpoint.npz").exists()
 
 
+#: A fit that kills itself (SIGKILL: no handler runs) at its 20th step; argv: config, run folder.
+KILLED_AT_STEP_20 = """
+import os, signal, sys
+from pathlib import Path
+from fit.commands.common import start
+from fit.commands.fit import run_fit
+from fit.config import load_fit_config
+
+def progress(phase, step, loss):
+    if step >= 20:
+        os.kill(os.getpid(), signal.SIGKILL)
+
+start(None)
+run_fit(load_fit_config(Path(sys.argv[1])), Path(sys.argv[2]), progress)
+"""
+
 RESUMABLE = CONFIG + (
     '[[fit.phases]]\nsolver = "adam"\nsteps = 60\nspp = 4\nlr = 0.05\naverage = 0.5\n'
 )
@@ -227,10 +243,19 @@ def test_kill_and_resume_ends_where_an_uninterrupted_run_does(tmp_path):
     (tmp_path / "fit.toml").write_text(RESUMABLE)
     whole = run_cli("fit", tmp_path / "fit.toml", "--out", tmp_path / "whole")
     assert whole.returncode == 0, whole.stderr
-    process = _fit_process(tmp_path / "fit.toml", tmp_path / "killed")
-    _wait_for_step(tmp_path / "killed" / "checkpoint.npz", 20, process)
-    process.send_signal(signal.SIGKILL)
-    process.communicate()
+    # killed at step 20 by itself (a wait for the step from outside raced a fast machine)
+    killed = subprocess.run(
+        [sys.executable, "-c", KILLED_AT_STEP_20, tmp_path / "fit.toml", tmp_path / "killed"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "LAYERFIT_CHECKPOINT_SECONDS": "0"},  # a checkpoint every step
+        timeout=600,
+        check=False,
+    )
+    assert killed.returncode == -signal.SIGKILL, killed.stderr
+    with np.load(tmp_path / "killed" / "checkpoint.npz") as data:
+        assert 15 <= json.loads(str(data["meta"]))["step"] <= 20
     resumed = run_cli("fit", tmp_path / "fit.toml", "--out", tmp_path / "killed", "--resume")
     assert resumed.returncode == 0, resumed.stderr
     a = json.loads((tmp_path / "whole" / "summary.json").read_text())

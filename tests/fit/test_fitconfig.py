@@ -129,14 +129,15 @@ def test_default_job_configs(tmp_path):
     assert [f.key for f in resolve(fit.material, fit.free)] == fit.free
 
 
-def test_readme_shows_the_default_schedule_exactly():
-    """README's "Fitting" config example says its phases are exactly the default schedule."""
+def test_fitting_guide_shows_the_default_schedule_exactly():
+    """docs/fitting.md's config example ("The fit config") says its phases are exactly the
+    default schedule."""
     import tomllib
 
     from fit.solvers import Phase
 
-    text = (ROOT / "README.md").read_text()
-    fitting = text[text.index("\n## Fitting\n") :]
+    text = (ROOT / "docs" / "fitting.md").read_text()
+    fitting = text[text.index("\n## The fit config\n") :]
     block = fitting[
         fitting.index("```toml\n") + 8 : fitting.index("```", fitting.index("```toml") + 7)
     ]

@@ -8,7 +8,7 @@ from pathlib import Path
 import drjit as dr
 import numpy as np
 
-from fit.commands.bench import LongRun, long_run
+from fit.bench import LongRun, long_run
 
 ROOT = Path(__file__).resolve().parents[2]
 

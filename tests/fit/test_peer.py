@@ -93,7 +93,7 @@ def fit_peer(config: str):
 
 @pytest.mark.slow
 def test_peer_sphere_is_recovered(shared_data):
-    """configs/peer-sphere.toml with the default schedule (exact Fresnel, as Cycles): issue 5's
+    """configs/peer-sphere.toml with the default schedule (exact Fresnel, as Cycles): its
     targets are alpha within 2 %, ior within 0.02, pigment within 0.01 per channel (measured
     with the split `gn` default: +0.3 %, -0.0008, 0.0002 in 81 s of fit on 2 cores; with the
     EON lobe's sigma free too, 2026-12-01: -0.6 %, -0.0011, 0.0003, sigma 0.0003 for Cycles'

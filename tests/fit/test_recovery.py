@@ -1,4 +1,4 @@
-"""Recovery over the parameter range (issue 14): the fast subset of the sweep, its calibration
+"""Recovery over the parameter range: the fast subset of the sweep, its calibration
 table's resume, and the tutorial loop the bench compares against."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import os
 import numpy as np
 import pytest
 
-from fit import recovery
-from fit.commands import bench
+from fit import bench, recovery
+from fit.bench import grid, versus
 from fit.material import resolve
 from fit.solvers import Problem
 
@@ -112,7 +112,7 @@ def test_a_changed_solver_constant_is_another_setting(monkeypatch):
     monkeypatch.undo()
     code = (
         "from fit.variant import select_variant; select_variant(); "
-        "from fit.commands import bench; print(bench.constants_digest())"
+        "from fit import bench; print(bench.constants_digest())"
     )
     digests = {
         subprocess.run(
@@ -204,7 +204,7 @@ def test_grid_table_resumes_marks_the_front_and_plots(tmp_path, monkeypatch):
             "values": {},
         }
 
-    monkeypatch.setattr(bench, "grid_cell", fake)
+    monkeypatch.setattr(grid, "grid_cell", fake)
     assert len(bench.grid_cells(("sphere", "cup"), (64, 128))) == 2 * 12 + 2 + 2 * 4
     assert len(bench.grid_cells(("sphere",), (128, 256))) == 2 * 12 + 1  # the loop up to 128
     assert ("sphere", 256, 0, "tutorial") in bench.grid_cells(("sphere",), (256,))
@@ -240,7 +240,7 @@ def test_versus_table_resumes_and_compares_medians(tmp_path, monkeypatch):
             else default_path,
         }
 
-    monkeypatch.setattr(bench, "versus_run", fake)
+    monkeypatch.setattr(versus, "versus_run", fake)
     table = bench.versus_table(3, tmp_path / "v.json", plot=tmp_path / "v.png")
     assert sorted(ran) == [(m, k) for m in ("default", "tutorial") for k in range(3)]
     assert (tmp_path / "v.png").stat().st_size > 10_000

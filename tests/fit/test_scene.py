@@ -473,7 +473,7 @@ def test_a_crack_between_triangles_on_pixel_centres_is_not_a_back_face(tmp_path)
     0.8 wide at 72 pixels: an edge of its side projects onto a column of pixel centres, and some
     of those rays slipped through the crack between its triangles onto the far wall's inside.
     11 of 1728 cells were taken as seen from behind and two views warned; its renders hold no
-    black pixel (helper-34's audit)."""
+    black pixel."""
     from fit.render.scene import view_warnings
 
     n, r, lines = 48, 0.1, []

@@ -229,9 +229,9 @@ def test_inspect_run_again_redraws_its_default_sheet_only(tmp_path, monkeypatch)
 
 @pytest.mark.parametrize("limit, noted", [(10**9, False), (100, True)])
 def test_inspect_notes_large_views_with_a_downscale(tmp_path, monkeypatch, limit, noted):
-    """Three 6000x4000 photos took `inspect` 2 minutes and 7 GB without a word (helper-35's
-    audit): above `LARGE_VIEW` pixels a view it says so first, with the `--downscale` that
-    shows them at about a million pixels."""
+    """Three 6000x4000 photos took `inspect` 2 minutes and 7 GB without a word: above
+    `LARGE_VIEW` pixels a view it says so first, with the `--downscale` that shows them at about
+    a million pixels."""
     import math
 
     from typer.testing import CliRunner
