@@ -645,6 +645,21 @@ def parse_scene(data: dict, file: Path, names: Callable[[str], str] = str) -> Sc
 # Writing ------------------------------------------------------------------------------------------
 
 
+def geometry_to_table(g, rel=str) -> dict:
+    """The `[scene.geometry]` table of a sphere, a cup or an OBJ file (its path written by
+    `rel`)."""
+    if isinstance(g, Sphere):
+        return {"type": "sphere", "center": list(g.center), "radius": g.radius}
+    if isinstance(g, Cup):
+        return {"type": "cup", **asdict(g.shape)}
+    if isinstance(g, ObjFile):
+        table = {"type": "obj", "file": rel(g.path)}
+        if g.face_normals:
+            table["face_normals"] = True
+        return table
+    raise CaptureError(f"{g.source}: a mesh held in memory has no manifest entry; save an OBJ")
+
+
 def scene_to_table(scene: Scene, folder: Path | None = None) -> dict:
     """The `[scene]` table of `scene` without cameras (a capture's come from its views). File
     paths are written relative to `folder`."""
@@ -652,17 +667,7 @@ def scene_to_table(scene: Scene, folder: Path | None = None) -> dict:
     def rel(path: Path) -> str:
         return str(Path(path).relative_to(folder)) if folder else str(path)
 
-    g = scene.geometry
-    if isinstance(g, Sphere):
-        geometry = {"type": "sphere", "center": list(g.center), "radius": g.radius}
-    elif isinstance(g, Cup):
-        geometry = {"type": "cup", **asdict(g.shape)}
-    elif isinstance(g, ObjFile):
-        geometry = {"type": "obj", "file": rel(g.path)}
-        if g.face_normals:
-            geometry["face_normals"] = True
-    else:
-        raise CaptureError(f"{g.source}: a mesh held in memory has no manifest entry; save an OBJ")
+    geometry = geometry_to_table(scene.geometry, rel)
     lights = []
     for light in scene.lights:
         if isinstance(light, RectLight):

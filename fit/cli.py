@@ -3,14 +3,8 @@
 
 from __future__ import annotations
 
-import contextlib
-import errno
 import functools
-import logging
 import math
-import os
-import signal
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
@@ -33,6 +27,28 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
+
+def command(function: Callable) -> Callable:
+    """A command of the app whose failures are one line and an exit status (2 for bad input, 1
+    for what cannot run here or be written, 130 when stopped), however it is called."""
+
+    @functools.wraps(function)
+    def run(*args, **kwargs):
+        try:
+            return function(*args, **kwargs)
+        except Stopped as err:  # a command stopped by Ctrl-C: what it kept
+            if err.unwritten:  # a full disk: the partial report is not there
+                ui.say("error:", "red", err.unwritten)
+            ui.say("interrupted:", "yellow", str(err))
+            raise typer.Exit(130) from None
+        except (InputError, BackendError) as err:  # bad input, or what cannot run here
+            ui.say("error:", "red", str(err))
+            bad_input = isinstance(err, InputError | VariantError)
+            raise typer.Exit(2 if bad_input and not isinstance(err, OutputError) else 1) from None
+
+    return app.command()(run)
+
+
 Variant = Annotated[
     str | None,
     typer.Option(
@@ -41,15 +57,6 @@ Variant = Annotated[
 ]
 Force = Annotated[bool, typer.Option("--force", help="Replace existing outputs.")]
 Seed = Annotated[int, typer.Option(min=0, max=MAX_SEED, help="Random seed.")]
-
-#: Where a path holds a name longer than the file system allows (it was an internal error).
-NAME_TOO_LONG = (
-    "a name in this path is longer than the file system allows (255 bytes on most); choose a "
-    "shorter one"
-)
-
-#: Where a path's file or folder may not be read or written by this user.
-NO_PERMISSION = "permission denied; check its permissions (or choose another path)"
 
 
 def _finite(low: float, high: float) -> Callable[[float], float]:
@@ -72,7 +79,7 @@ def _number(low: float, high: float, text: str) -> typer.Option:
     return typer.Option(callback=_finite(low, high), help=text)
 
 
-@app.command()
+@command
 def render(
     config: Annotated[
         Path, typer.Argument(help="Render config (TOML: scene, material) or a preset (--scene).")
@@ -98,7 +105,7 @@ def render(
         run(config, scene, out, spp, seed, force, variant, bar, ui.wrote)
 
 
-@app.command()
+@command
 def bench(
     spp: Annotated[
         int,  # at most 2^14: one render of the 480x360 scene under Mitsuba's 2^32 samples
@@ -154,7 +161,7 @@ def bench(
         ui.wrote(path)
 
 
-@app.command()
+@command
 def synth(
     config: Annotated[
         Path, typer.Argument(help="Render config (TOML) whose material is the truth, or a preset.")
@@ -198,7 +205,7 @@ def synth(
     ui.wrote(path)
 
 
-@app.command()
+@command
 def inspect(
     capture: Annotated[
         Path,
@@ -224,7 +231,7 @@ def inspect(
     ui.inspection(capture, run(capture, sheet, silhouette, downscale, force, variant, note))
 
 
-@app.command()
+@command
 def fit(
     config: Annotated[Path, typer.Argument(help="Fit config (TOML): capture, material, fit.")],
     out: Annotated[
@@ -255,7 +262,7 @@ def fit(
     ui.fit_results(config, folder, summary)
 
 
-@app.command()
+@command
 def batch(
     spec: Annotated[Path, typer.Argument(help="Batch spec (TOML): configs x captures x seeds.")],
     address: Annotated[
@@ -286,7 +293,7 @@ def batch(
         raise typer.Exit(1)
 
 
-@app.command()
+@command
 def export(
     preset: Annotated[
         Path, typer.Argument(help="Preset (TOML) to export, e.g. a run's preset.toml.")
@@ -316,90 +323,3 @@ def export(
     with ui.progress() as bar:
         path = run(preset, to, out, portable, force, size, variant, bar)
     ui.wrote(path)
-
-
-def _terminate(signum, frame) -> None:
-    """SIGTERM stops like Ctrl-C: partial outputs are removed (a fit keeps its checkpoint)."""
-    raise KeyboardInterrupt
-
-
-def main(argv: list[str] | None = None) -> None:
-    """The `layerfit` entry point: every failure is one line on stderr and an exit status (2 for
-    bad input or usage, 130 when interrupted, 1 otherwise); `LAYERFIT_DEBUG=1` shows
-    tracebacks of unexpected errors."""
-    logging.basicConfig(level=logging.WARNING, format="%(message)s")
-    logging.getLogger().handlers[0].setFormatter(ui.Plain())
-    previous = None
-    with contextlib.suppress(ValueError):  # only the main thread may set handlers
-        previous = signal.signal(signal.SIGTERM, _terminate)
-    try:
-        code = _run(argv)
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
-    sys.exit(code)
-
-
-@functools.cache
-def _command():
-    """The app's click command, built once (typer rebuilds it on every call otherwise)."""
-    return typer.main.get_command(app)
-
-
-def _run(argv: list[str] | None) -> int:
-    """Run the app; the exit status, every failure printed as one line."""
-    ui.said["interrupted"] = False
-    code = _run_app(argv)
-    if code == 130 and not ui.said["interrupted"]:  # typer returns 130 for a KeyboardInterrupt
-        ui.say("interrupted:", "yellow", "stopped by Ctrl-C or SIGTERM")  # that left a command
-    return code
-
-
-def _run_app(argv: list[str] | None) -> int:
-    """`_run`'s work: the app's exit status, a failure printed as one line."""
-    from . import interrupts
-
-    try:
-        code = _command().main(args=argv, prog_name="layerfit", standalone_mode=False)
-    except typer.TyperException as err:  # usage: an unknown option, a value out of range
-        if type(err).__name__ == "NoArgsIsHelpError":  # `layerfit` alone: the help
-            err.show()
-        else:
-            ctx = getattr(err, "ctx", None)
-            where = f"; see '{ctx.command_path} --help'" if ctx is not None else ""
-            ui.say("error:", "red", f"{err.format_message().rstrip('.')}{where}")
-        code = err.exit_code
-    except typer.Abort:  # Ctrl-C before a command's own handling (click's)
-        ui.say("interrupted:", "yellow", "stopped by Ctrl-C or SIGTERM")
-        code = 130
-    except KeyboardInterrupt:  # outside click's own handling (typer building the command)
-        code = 130  # `_run` says so
-    except Stopped as err:  # a command stopped by Ctrl-C: what it kept
-        if err.unwritten:  # a full disk: the partial report is not there
-            ui.say("error:", "red", err.unwritten)
-        ui.say("interrupted:", "yellow", str(err))
-        code = 130
-    except (InputError, BackendError) as err:  # bad input (2), or what cannot run here (1)
-        ui.say("error:", "red", str(err))
-        bad_input = isinstance(err, InputError | VariantError)
-        code = 2 if bad_input and not isinstance(err, OutputError) else 1
-    except Exception as err:
-        if interrupts.asked():  # a Ctrl-C inside a library's import or callback, surfaced as
-            return 130  # another error (drjit's import: a NameError)
-        if isinstance(err, OSError) and err.errno == errno.ENAMETOOLONG:  # a path's long name
-            ui.say("error:", "red", f"{err.filename}: {NAME_TOO_LONG}")
-            return 2
-        if isinstance(err, PermissionError) and err.filename:  # a file this user may not use
-            ui.say("error:", "red", f"{err.filename}: {NO_PERMISSION}")
-            return 2
-        if os.environ.get("LAYERFIT_DEBUG"):
-            raise
-        first = (str(err).strip().splitlines() or [""])[0][:300]
-        ui.say(
-            "error:",
-            "red",
-            f"internal error ({type(err).__name__}: {first}); please report it with the "
-            "command (LAYERFIT_DEBUG=1 shows the traceback)",
-        )
-        code = 1
-    return code if isinstance(code, int) else 0

@@ -11,6 +11,7 @@ import os
 import socket
 import warnings
 from collections.abc import Iterator
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +102,7 @@ def prepare_worker(cpus: int, variant: str | None, kernel_cache: str | None = No
     """In a worker, before its first fit: Dr.Jit's kernel cache folder on this node (only while
     Dr.Jit is not loaded yet in this process), the Mitsuba variant with our plugins, and Dr.Jit's
     thread count = the task's CPUs. Returns the variant."""
-    from ..variant import select_variant
+    from .variant import select_variant
 
     if (cpus, variant) in _prepared:
         return variant
@@ -142,3 +143,18 @@ def one_line_error(err: Exception) -> str:
     """A Ray task's error as one line: its type and the first line of its cause."""
     text = str(getattr(err, "cause", None) or err).strip()
     return f"{type(err).__name__}: {text.splitlines()[0] if text else ''}"
+
+
+def as_finished(pending: list) -> Iterator[tuple[Any, Any, str | None]]:
+    """Ray tasks' outcomes in the order they finish: `(ref, result, None)`, or `(ref, None, error)`
+    where the task raised or its worker died (`one_line_error`). `pending` (refs) is kept to the
+    unfinished ones, for a caller that cancels them on Ctrl-C."""
+    import ray
+
+    while pending:
+        ready, pending[:] = ray.wait(pending, num_returns=1)
+        try:
+            result, error = ray.get(ready[0]), None
+        except ray.exceptions.RayError as err:
+            result, error = None, one_line_error(err)
+        yield ready[0], result, error

@@ -6,6 +6,6 @@ MAX_SEED = 2**32 - 1
 
 #: The most samples per pixel a render (`layerfit render`, `synth`, a config's `render.spp`)
 #: takes: 2^20 is 16384 passes of `fit.render.image.PASS_SPP`, far past converged (the
-#: references in BENCHMARKS.md use at most 4096), while a typo's extra digits are refused before
-#: any work (Mitsuba's own limit, a 32-bit `sample_count`, was an internal error mid-render).
+#: benchmarks' rendered targets use at most 16384), while a typo's extra digits are refused
+#: before any work (Mitsuba's own limit, a 32-bit `sample_count`, was an internal error mid-render).
 MAX_SPP = 2**20

@@ -5,7 +5,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .params import Option, ParamSpec
+from .params import Option, ParamSpec, PluginDecl
 
 
 def read_float(props: mi.Properties, spec: ParamSpec, plugin: str) -> mi.Float:
@@ -25,6 +25,13 @@ def read_texture(props: mi.Properties, spec: ParamSpec, plugin: str) -> mi.Textu
     if "value" in params:
         spec.check(dr.ravel(params["value"]).numpy(), f"{plugin} plugin")
     return texture
+
+
+def read_params(props: mi.Properties, decl: PluginDecl, *keys: str) -> list:
+    """`decl`'s parameters `keys`, in order: an RGB one as a texture (`read_texture`), a scalar
+    as an opaque `mi.Float` (`read_float`)."""
+    specs = [decl.params[k] for k in keys]
+    return [(read_texture if s.kind == "rgb" else read_float)(props, s, decl.name) for s in specs]
 
 
 def read_option(props: mi.Properties, option: Option, plugin: str):

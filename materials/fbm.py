@@ -10,7 +10,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ._plugin import read_float, read_option
+from ._plugin import read_option, read_params
 from .noise import fbm
 from .params import FBM
 
@@ -27,8 +27,7 @@ class FbmMask(mi.Texture):
         self.scale, self.octaves, self.seed = (
             read_option(props, FBM.options[k], "fbm") for k in ("scale", "octaves", "seed")
         )
-        self.threshold = read_float(props, self.PARAMS["threshold"], "fbm")
-        self.softness = read_float(props, self.PARAMS["softness"], "fbm")
+        self.threshold, self.softness = read_params(props, FBM, "threshold", "softness")
         self.texture = props.get_texture("texture") if "texture" in props else None
 
     def noise(self, uv):

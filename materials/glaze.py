@@ -25,7 +25,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ._plugin import read_float, read_option, read_texture
+from ._plugin import read_float, read_option, read_params
 from .microfacet import beckmann_d, cook_torrance_g, eon, fresnel, oren_nayar, sample_beckmann
 from .noise import fbm
 from .params import GLAZE
@@ -47,10 +47,9 @@ class Glaze(mi.BSDF):
 
     def __init__(self, props: mi.Properties):
         mi.BSDF.__init__(self, props)
-        self.pigment = read_texture(props, self.PARAMS["pigment"], "glaze")
-        self.sigma = read_float(props, self.PARAMS["sigma"], "glaze")
-        self.roughness = read_float(props, self.PARAMS["roughness"], "glaze")
-        self.ior = read_float(props, self.PARAMS["ior"], "glaze")
+        self.pigment, self.sigma, self.roughness, self.ior = read_params(
+            props, GLAZE, "pigment", "sigma", "roughness", "ior"
+        )
         options = {k: read_option(props, o, "glaze") for k, o in GLAZE.options.items()}
         self.coupling, self.fresnel = options["coupling"], options["fresnel"]
         self.diffuse = options["diffuse"]

@@ -12,7 +12,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ._plugin import read_float, read_option, read_texture
+from ._plugin import read_option, read_params
 from .microfacet import eon, oren_nayar
 from .params import OREN_NAYAR
 
@@ -26,8 +26,7 @@ class OrenNayar(mi.BSDF):
 
     def __init__(self, props: mi.Properties):
         mi.BSDF.__init__(self, props)
-        self.reflectance = read_texture(props, self.PARAMS["reflectance"], "oren_nayar")
-        self.sigma = read_float(props, self.PARAMS["sigma"], "oren_nayar")
+        self.reflectance, self.sigma = read_params(props, OREN_NAYAR, "reflectance", "sigma")
         self.diffuse = read_option(props, OREN_NAYAR.options["diffuse"], "oren_nayar")
         self.m_components = [_FLAGS]
         self.m_flags = _FLAGS

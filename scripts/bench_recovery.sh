@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The recovery sweep of BENCHMARKS.md (issue 14): 30 synthetic glazes on a sphere and a torus
+# The recovery sweep of BENCHMARKS.md: 30 synthetic glazes on a sphere and a torus
 # fitted back with the default schedule; its calibration table into scripts/benchmarks/.
 # Resumable: finished cases are kept in scripts/benchmarks/recovery.json (delete it to start
 # again; a file of another size, schedule or start is refused). About 40 minutes on 2 cores.

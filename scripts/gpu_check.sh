@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU check of BENCHMARKS.md (issue 14): on a machine with an NVIDIA GPU and layerfit's
+# The GPU check of BENCHMARKS.md: on a machine with an NVIDIA GPU and layerfit's
 # dependencies importable by `python3` (a venv, or PYTHONPATH), run with `cuda_ad_rgb`:
 #   1. a smoke render, 2. the profile table, 3. the default against the tutorial loop (2 seeds),
 #   4. the bench grid at 128 wide, 5. the default test suite, 6. the rest of the grid (64 and

@@ -11,7 +11,7 @@ renders at its own estimate.
     .venv/bin/python scripts/noise_weighted_recovery.py sphere:0.01 torus:0.02 --seeds 0,1,2
 
 A case is `shape:alpha`, or `shape:ior=2.8`. Prints each fit's errors, alpha's reported sd and
-whether the sweep's targets are met (session 24: BENCHMARKS, "Recovery over the range").
+whether the sweep's targets are met (BENCHMARKS, "Low alpha: alternatives measured").
 """
 
 from __future__ import annotations

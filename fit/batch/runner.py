@@ -28,7 +28,7 @@ import numpy as np
 from captures.errors import InputError
 from captures.files import write_text
 
-from ..cluster import Cancelled, connect, driver_variant, one_line_error, prepare_worker
+from ..cluster import Cancelled, as_finished, connect, driver_variant, prepare_worker
 from .spec import Batch, Job
 
 log = logging.getLogger(__name__)
@@ -106,22 +106,24 @@ def fit_job(job: Job, cpus: int, variant: str | None, kernel_cache: str) -> dict
         prepare_worker(cpus, variant, kernel_cache)
         from ..commands.fit import run_fit
         from ..commands.prepare import check_output, check_resume, prepare
+        from ..commands.run_folder import owned
         from ..config import load_fit_config
 
         cfg = load_fit_config(job.config, job.capture, job.seed)
-        resume = _check_run_folder(job.out)
-        prepared = prepare(cfg)
-        if resume and cfg.starts > 1:  # the config became a multi-start: it has no checkpoint
-            log.warning("fit %s starts again: a multi-start keeps no checkpoint", job.name)
-            resume = False
-        elif resume:
-            try:
-                check_resume(prepared, cfg, job.out)
-            except InputError as err:  # the config changed since: its checkpoint is stale
-                log.warning("fit %s starts again: %s", job.name, err)
+        with owned(job.out):  # a fit of its own into the folder is refused, and waits for none
+            resume = _check_run_folder(job.out)
+            prepared = prepare(cfg)
+            if resume and cfg.starts > 1:  # the config became a multi-start: no checkpoint
+                log.warning("fit %s starts again: a multi-start keeps no checkpoint", job.name)
                 resume = False
-        check_output(job.out, cfg, resume, force=True)  # a failed run's leftovers are replaced
-        summary = run_fit(cfg, job.out, resume=resume, prepared=prepared)
+            elif resume:
+                try:
+                    check_resume(prepared, cfg, job.out)
+                except InputError as err:  # the config changed since: its checkpoint is stale
+                    log.warning("fit %s starts again: %s", job.name, err)
+                    resume = False
+            check_output(job.out, cfg, resume, force=True)  # a failed run's leftovers go
+            summary = run_fit(cfg, job.out, resume=resume, prepared=prepared)
         entry |= summary_entry(summary) | {"status": "done"}
     except Exception as err:
         message = str(err).strip().splitlines()[0] if str(err).strip() else ""
@@ -148,9 +150,11 @@ def _check_run_folder(out: Path) -> bool:
                 f"{path}: unreadable, or not a fit's checkpoint; delete it to run this fit again"
             ) from None
         return True
+    from ..commands.run_folder import LOCK
+
     runs = ("summary.json", "checkpoint.npz")
-    if out.is_dir() and any(out.iterdir()) and not any((out / n).is_file() for n in runs):
-        names = sorted(p.name for p in out.iterdir())[:3]
+    names = sorted(p.name for p in out.iterdir() if p.name != LOCK)[:3] if out.is_dir() else []
+    if names and not any((out / n).is_file() for n in runs):  # the lock: this fit's own
         raise InputError(
             f"run folder {out} holds files that are not a run's ({', '.join(names)}); move them "
             "away, or give the batch another out folder"
@@ -227,13 +231,12 @@ def run_batch(
         write_index(batch, list(entries.values()))
         pending = list(refs)
         try:
-            while pending:
-                ready, pending = ray.wait(pending, num_returns=1)
-                name = refs[ready[0]]
-                try:
-                    entries[name] |= ray.get(ready[0])
-                except ray.exceptions.RayError as err:  # the worker died (crash, memory)
-                    entries[name] |= {"status": "failed", "error": one_line_error(err)}
+            for ref, entry, error in as_finished(pending):
+                name = refs[ref]
+                if error is None:
+                    entries[name] |= entry
+                else:  # the worker died (crash, memory)
+                    entries[name] |= {"status": "failed", "error": error}
                 done += 1
                 write_index(batch, list(entries.values()))
                 if progress:

@@ -38,7 +38,7 @@ from ..errors import OutputError, Stopped
 from ..solvers import Checkpoint, Result, run_schedule
 from ..solvers.base import PhaseReport
 from .prepare import Prepared, fit_identity, prepare
-from .run_folder import write_run, writing
+from .run_folder import check_free, owned, write_run, writing
 
 
 class Interrupted(Exception):
@@ -212,10 +212,9 @@ def fit(
     on Ray workers. `progress`: a `rich.progress.Progress` (default: none shown). Bad input is
     an `InputError` before any work (no run folder left behind); a stop (Ctrl-C, SIGTERM) is
     `Stopped`, saying what was kept and how to resume."""
-    from ..cluster import Cancelled
     from ..config import load_fit_config
-    from .common import Quiet, start
-    from .prepare import check_output, check_resume
+    from .common import Quiet
+    from .prepare import check_output
 
     progress = progress or Quiet()
     out = out or Path("out") / config.stem
@@ -238,7 +237,24 @@ def fit(
             raise InputError(f"--starts {starts}: a multi-start fit has no checkpoint to --resume")
         settings = cfg.settings.model_copy(update={"starts": starts})
         cfg = dataclasses.replace(cfg, settings=settings)
+    check_free(out)
     check_output(out, cfg, resume, force)
+    try:
+        with owned(out):
+            summary = _fit_owned(cfg, config, out, resume, holdout, starts, variant, progress)
+    except BaseException:  # nothing written: no empty run folder left (a checkpoint is kept)
+        progress.stop()
+        forget_out()
+        raise
+    return summary, out
+
+
+def _fit_owned(cfg, config, out, resume, holdout, starts, variant, progress) -> dict:
+    """`fit`'s work once it owns the run folder; a stop is `Stopped`, saying what was kept."""
+    from ..cluster import Cancelled
+    from .common import start
+    from .prepare import check_resume
+
     try:
         start(variant)
         prepared = prepare(cfg, holdout)  # reads the photos: a Ctrl-C stops it at once
@@ -247,11 +263,7 @@ def fit(
         if resume:  # before any progress bar: a checkpoint of another fit is one line
             check_resume(prepared, cfg, out)
     except KeyboardInterrupt:
-        forget_out()
         raise Stopped("interrupted before the fit began: nothing written") from None
-    except BaseException:  # bad input or an internal error: no empty run folder left
-        forget_out()
-        raise
     phases = cfg.phases if cfg.starts == 1 else ()
     tasks = [
         progress.add_task(
@@ -262,7 +274,7 @@ def fit(
     if cfg.starts > 1:
         tasks.append(progress.add_task(f"{cfg.starts} starts on Ray workers", total=cfg.starts))
     try:
-        summary = run_fit(
+        return run_fit(
             cfg,
             out,
             lambda k, n, loss: progress.update(tasks[k], completed=n),
@@ -273,18 +285,10 @@ def fit(
         )
     except (Interrupted, KeyboardInterrupt) as err:
         progress.stop()
-        forget_out()
         what = stopped(err, config, out, holdout, variant, starts)
         raise Stopped(what, getattr(err, "unwritten", None)) from None
     except Cancelled as err:  # --starts: the Ray tasks were cancelled
-        progress.stop()
-        forget_out()
         raise Stopped(f"{err}; nothing written") from None
-    except BaseException:  # bad output or an internal error (a checkpoint saved is kept)
-        progress.stop()
-        forget_out()
-        raise
-    return summary, out
 
 
 def stopped(err, config, out, holdout, variant, starts) -> str:

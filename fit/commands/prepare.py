@@ -32,6 +32,7 @@ from ..solvers import Checkpoint, Problem
 from ..solvers.gn import AUTO_SPLIT
 from ..solvers.schedule import check_saved
 from ..solvers.uncertainty import forward_mode_refusal
+from .run_folder import LOCK
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +74,7 @@ def check_output(out: Path, cfg: FitConfig, resume: bool, force: bool) -> None:
         if not (out / "checkpoint.npz").exists():
             raise InputError(f"--resume: no checkpoint in {out}; run without --resume")
         Checkpoint(out / "checkpoint.npz").load()  # unreadable: refused before any work
-    elif out.exists() and any(out.iterdir()):
+    elif out.exists() and any(p.name != LOCK for p in out.iterdir()):  # a lock: its own
         if not force:
             raise InputError(
                 f"--out {out}: exists and is not empty; choose another folder, --resume a "
@@ -153,13 +154,12 @@ def check_truth(
             for name in dropped:
                 del capture.truth[name]
             scored = f"{', '.join(dropped)} not scored" if dropped else "scores compare two models"
-            message = (
+            _warn(
+                capture,
                 f"{path}: the truth was made with {key} = {choice!r}, the material has "
                 f"{have!r} ({scored}); set {option} = {choice!r} on the {layer or 'material'} "
-                "layer to fit the same model"
+                "layer to fit the same model",
             )
-            log.warning(message)
-            capture.warnings.append(message)  # in the summary and the report too
         known = sorted(material.params)
         unknown = [
             k
@@ -194,14 +194,19 @@ def check_truth(
                 raise CaptureError(str(err)) from None
             # another renderer's target (a Cycles glaze of roughness 0.08: alpha 0.0064) is
             # fitted all the same, toward the nearest value the material has; not scored
-            message = (
+            _warn(
+                capture,
                 f"{path}: the peer's truth.{f.key} = {value} is outside the parameter's bounds "
                 f"[{f.spec.lower:g}, {f.spec.upper:g}] ({f.spec.doc}): the fit cannot reach it "
-                "and ends near the bound; not scored"
+                "and ends near the bound; not scored",
             )
-            log.warning(message)
-            capture.warnings.append(message)  # in the summary and the report too
             del capture.truth[f.key]
+
+
+def _warn(capture: Capture, message: str) -> None:
+    """A warning: logged now, and kept with the capture for the summary and the report."""
+    log.warning(message)
+    capture.warnings.append(message)
 
 
 def _check_emitters(capture: Capture, fitted: Capture, free: list[Free], path) -> None:
@@ -397,8 +402,7 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
                 "false), so it does nothing; remove it, or set fit.gains"
             )
     for message in messages:
-        log.warning(message)
-        capture.warnings.append(message)  # in the summary and the report too
+        _warn(capture, message)
     refusal = forward_mode_refusal(problem)
     # the default schedule's phases are named as such, with how to give others
     given = "" if "phases" in cfg.settings.model_fields_set else " (the default schedule)"
@@ -444,13 +448,12 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
         if pixels > largest:
             largest, sizes = pixels, {f"{v.image.shape[1]}x{v.image.shape[0]}" for v in views}
     if largest > LARGE_PIXELS:  # accepted without a word: 15 GB and no step in 6 minutes
-        message = (
+        _warn(
+            capture,
             f"{cfg.path}: the fit renders {largest:,} pixels a step (views of "
             f"{listing(sorted(sizes))}): "
-            f"each step will take long and much memory; {_smaller(cfg, largest)}"
+            f"each step will take long and much memory; {_smaller(cfg, largest)}",
         )
-        log.warning(message)
-        capture.warnings.append(message)
     pixels = sum(v.image.shape[0] * v.image.shape[1] for v in fitted.views)
     full = {"uncertainty_spp": cfg.uncertainty_spp}  # renders at full resolution
     if cfg.starts > 1:

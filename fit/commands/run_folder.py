@@ -5,16 +5,22 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import html
 import json
 import logging
 import math
+import os
 import re
+import socket
+import time
 import tomllib
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
+from captures.errors import InputError
 from captures.images import TEXTURE_SUFFIXES, write_image
 
 from ..config import config_identity
@@ -248,3 +254,62 @@ def _finite(value):
     if isinstance(value, np.generic):
         return value.item()
     return value
+
+
+#: The lock file of a run folder while a process writes it (removed when it ends).
+LOCK = ".layerfit-lock"
+
+
+@contextlib.contextmanager
+def owned(out: Path) -> Iterator[None]:
+    """Inside, this process owns the run folder `out` (created if need be): a second fit or
+    batch task into it is refused with one line naming this process. The lock is the kernel's
+    (`flock`), so a process killed while it held it holds it no longer: its lock file is taken
+    over."""
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / LOCK
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = os.read(fd, 500).decode(errors="replace").strip()
+            os.close(fd)
+            raise _taken(out, holder) from None
+        try:  # the file its last owner removed as we opened it is not the lock: open anew
+            if os.stat(path).st_ino == os.fstat(fd).st_ino:
+                break
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+    stamp = time.strftime("%Y-%m-%d %H:%M:%S")
+    os.ftruncate(fd, 0)
+    os.write(fd, f"process {os.getpid()} on {socket.gethostname()}, since {stamp}".encode())
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            path.unlink()
+        os.close(fd)
+
+
+def check_free(out: Path) -> None:
+    """Refuse a run folder another process owns (`owned`), naming it; before any other check of
+    the folder, which would only say it is not empty."""
+    try:
+        fd = os.open(out / LOCK, os.O_RDONLY)
+    except OSError:  # no lock file (or none readable: `owned` will tell)
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        raise _taken(out, os.read(fd, 500).decode(errors="replace").strip()) from None
+    finally:
+        os.close(fd)
+
+
+def _taken(out: Path, holder: str) -> InputError:
+    return InputError(
+        f"--out {out}: another fit is writing this run folder ({holder or 'another process'}); "
+        "wait for it to end, or choose another folder"
+    )

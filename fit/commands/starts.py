@@ -22,9 +22,9 @@ import numpy as np
 from ..cluster import (
     DEFAULT_KERNEL_CACHE,
     Cancelled,
+    as_finished,
     connect,
     driver_variant,
-    one_line_error,
     prepare_worker,
 )
 from ..config import FitConfig
@@ -119,15 +119,13 @@ def run_starts(
         failed: dict[int, dict] = {}
         pending = list(refs)
         try:
-            while pending:
-                ready, pending = ray.wait(pending, num_returns=1)
-                k = refs[ready[0]]
-                try:
-                    outcomes[k] = ray.get(ready[0])
-                    row = _row(k, outcomes[k])
-                except ray.exceptions.RayError as err:  # a worker died or the fit raised
-                    message = one_line_error(err)
-                    failed[k] = _failed_row(k, prepared.problem.values(points[k]), message)
+            for ref, outcome, error in as_finished(pending):
+                k = refs[ref]
+                if error is None:
+                    outcomes[k] = outcome
+                    row = _row(k, outcome)
+                else:  # a worker died or the fit raised
+                    failed[k] = _failed_row(k, prepared.problem.values(points[k]), error)
                     row = failed[k]
                 if on_start:
                     on_start(k, row)

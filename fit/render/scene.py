@@ -19,6 +19,7 @@ from captures.scene import (
     Sphere,
     bounding_sphere,
 )
+from captures.schema import geometry_to_table
 
 from ..material import Material
 
@@ -179,14 +180,10 @@ def geometry_dict(scene: Scene, bsdf: mi.BSDF, emitter: dict | None = None) -> d
         return mesh(cup_mesh(geometry.shape), "cup", bsdf, emitter)
     if isinstance(geometry, MeshArrays):
         return mesh(geometry.data, "object", bsdf, emitter)
-    if isinstance(geometry, Sphere):
-        out = {"type": "sphere", "center": list(geometry.center), "radius": geometry.radius}
-    elif isinstance(geometry, ObjFile):
-        out = {"type": "obj", "filename": str(geometry.path)}
-        if geometry.face_normals:
-            out["face_normals"] = True
-    else:
+    if not isinstance(geometry, Sphere | ObjFile):
         raise TypeError(f"unknown geometry {geometry!r}")
+    # a manifest's table, its file named as Mitsuba names it
+    out = {"filename" if k == "file" else k: v for k, v in geometry_to_table(geometry).items()}
     out["bsdf"] = bsdf
     if emitter is not None:
         out["emitter"] = emitter

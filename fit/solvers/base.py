@@ -133,6 +133,26 @@ class AbstractSolver(abc.ABC):
         `resume`; others restart the phase."""
 
 
+def solve_optimistix(
+    name: str, problem: Problem, solve, u0, seed: int, steps: int, loss_at, progress
+) -> Result:
+    """An optimistix solve from `u0` on one seed's renders, at most `steps` steps: `solve(y0,
+    args, max_steps, throw)` is `optx.minimise` or `optx.least_squares` with its function and
+    solver given, run with `throw=False` and reported by `optimistix_result`. `loss_at(u, seed)`
+    is the loss at an answer."""
+    import jax.numpy as jnp
+
+    from .problem import jax_seed
+
+    args = jax_seed(seed)
+    solution = solve(jnp.asarray(u0, jnp.float32), args=args, max_steps=steps, throw=False)
+
+    def loss(u):
+        return loss_at(jnp.asarray(u), args)
+
+    return optimistix_result(name, problem, solution, u0, loss, progress)
+
+
 def optimistix_result(name: str, problem: Problem, solution, u0, loss_at, progress) -> Result:
     """The `Result` of an optimistix solve run with `throw=False`, its outcome inspected; a
     non-finite answer is never applied (the phase's start is kept, and the outcome says so).

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax.numpy as jnp
 import optimistix as optx
 
-from .base import AbstractSolver, Options, Result, optimistix_result
-from .problem import jax_seed, residuals
+from .base import AbstractSolver, Options, Result, solve_optimistix
+from .problem import residuals
 
 
 class BFGSOptions(Options):
@@ -32,16 +34,6 @@ class BFGS(AbstractSolver):
             r = residual(u, seed)
             return 0.5 * jnp.dot(r, r)
 
-        solution = optx.minimise(
-            loss,
-            optx.BFGS(rtol=options.rtol, atol=options.atol),
-            jnp.asarray(u0, jnp.float32),
-            args=jax_seed(seed),
-            max_steps=steps,
-            throw=False,
-        )
-
-        def loss_at(u):
-            return loss(jnp.asarray(u), jax_seed(seed))
-
-        return optimistix_result(self.name, problem, solution, u0, loss_at, progress)
+        solver = optx.BFGS(rtol=options.rtol, atol=options.atol)
+        solve = functools.partial(optx.minimise, loss, solver)
+        return solve_optimistix(self.name, problem, solve, u0, seed, steps, loss, progress)

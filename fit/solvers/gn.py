@@ -10,14 +10,12 @@ import jax.numpy as jnp
 import numpy as np
 from pydantic import Field, PositiveFloat, PositiveInt
 
-from captures.errors import InputError
-
 from ..limits import MAX_SPP
 from ..material import to_physical
 from .adam import averaged_result
 from .base import AbstractSolver, Options, Result
 from .problem import jax_seed, noise_ratio, residuals
-from .uncertainty import CROSS_SEED_OFFSET, forward_mode_refusal, linear_model
+from .uncertainty import CROSS_SEED_OFFSET, linear_model, refuse_forward_mode
 
 
 class GNOptions(Options):
@@ -167,12 +165,7 @@ class GaussNewton(AbstractSolver):
         resume=None,
         offer=None,
     ) -> Result:
-        refusal = forward_mode_refusal(problem)
-        if refusal:
-            raise InputError(
-                f"solver gn: {refusal}, and its curvature is a forward-mode Jacobian: use adam "
-                "for textures"
-            )
+        refuse_forward_mode(problem, "gn", "its curvature is a forward-mode Jacobian")
         u = np.asarray(u0 if resume is None else resume["u"], np.float32)
         note = ""
         if resume is not None and "samples" in resume:

@@ -2,19 +2,17 @@
 
 from __future__ import annotations
 
+import functools
 from typing import Annotated
 
-import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 from pydantic import Field, PositiveInt
 
-from captures.errors import InputError
-
 from ..limits import MAX_SPP
-from .base import AbstractSolver, Options, Result, optimistix_result
-from .problem import jax_seed, residuals
-from .uncertainty import forward_mode_refusal
+from .base import AbstractSolver, Options, Result, solve_optimistix
+from .problem import residuals
+from .uncertainty import refuse_forward_mode
 
 
 class LMOptions(Options):
@@ -38,26 +36,15 @@ class LevenbergMarquardt(AbstractSolver):
     def run(
         self, problem, u0, *, steps, spp, seed, downscale, options, progress=None, **_
     ) -> Result:
-        refusal = forward_mode_refusal(problem)
-        if refusal:
-            raise InputError(
-                f"solver lm: {refusal}, and it renders a forward-mode Jacobian: use adam for "
-                "textures"
-            )
+        refuse_forward_mode(problem, "lm", "it renders a forward-mode Jacobian")
         render = problem.render_fn("jacobian", spp, downscale, options.jacobian_spp)
         independent = options.jacobian_spp is not None
         residual = residuals(problem, render, downscale, independent_gains=independent)
-        solution = optx.least_squares(
-            residual,
-            optx.LevenbergMarquardt(rtol=options.rtol, atol=options.atol),
-            jnp.asarray(u0, jnp.float32),
-            args=jax_seed(seed),
-            max_steps=steps,
-            throw=False,
-        )
 
-        def loss_at(u):
-            r = np.asarray(residual(jnp.asarray(u), jax_seed(seed)))
+        def loss_at(u, seed):
+            r = np.asarray(residual(u, seed))
             return 0.5 * r @ r
 
-        return optimistix_result(self.name, problem, solution, u0, loss_at, progress)
+        solver = optx.LevenbergMarquardt(rtol=options.rtol, atol=options.atol)
+        solve = functools.partial(optx.least_squares, residual, solver)
+        return solve_optimistix(self.name, problem, solve, u0, seed, steps, loss_at, progress)

@@ -97,24 +97,24 @@ class Phase(BaseModel):
         )
 
 
-#: The default schedule: Adam with fresh seeds at half resolution and 8 spp is cheap and robust
-#: from far away (its scale-free steps also move a parameter started next to a bound, where the
-#: sigmoid is flat); then the stochastic Gauss-Newton `gn` at full resolution, in two phases: 56
-#: steps of 16 spp relax (the mean of their last half handed on: their last iterate, handed on
-#: until 2026-12-01, wanders 0.012-0.028 around alpha 0.02 at 16 spp, and the averaged phase did
-#: not relax from it), 12 of 64 spp are averaged. A gradient's variance falls faster than 1 / spp
-#: (8x for 4x the samples at alpha 0.02; BENCHMARKS, "Fitting: the measurements behind the
-#: default"), so the average is best taken over few steps of many samples; relaxing takes steps
-#: (24 x 64 spp alone left ior -0.03 and -0.11 off at alpha 0.6 and 1, in a low-ior basin). `gn`
-#: replaced a second Adam phase (60 x 32 spp, lr 0.02) that could not relax from where the
-#: first one left a weakly determined parameter: alpha 0.02 on a 160x120 sphere ended +12 % for
-#: one seed, and +24 to +127 % at alpha 0.01-0.02 on 96x72 (BENCHMARKS, "Recovery over the
-#: range"). With one `gn` phase of 40 steps the Cycles sphere's alpha came out -2.3 and -2.9 %
-#: (the target: 2 %), with 80 +0.8 % (one run, 66 s of fit). The averaged phase keeps one
-#: sample count: `primal_spp = "auto"` there (256 / 16 against clean targets) gave sharper
-#: answers whose reported sd no longer covered them (the recovery sweep: 146 of 150 errors
-#: within 3 sd, was 150; with the per-pixel meat 149 of 150 and 25 of 30 cases within targets
-#: against this schedule's 26; BENCHMARKS, "Recovery over the range").
+#: The default schedule: Adam with fresh seeds at half resolution and 8 spp is cheap and robust from
+#: far away (its scale-free steps also move a parameter started next to a bound, where the sigmoid
+#: is flat); then the stochastic Gauss-Newton `gn` at full resolution, in two phases: 56 steps of 16
+#: spp relax (the mean of their last half handed on: their last iterate, handed on until 2026-12-01,
+#: wanders 0.012-0.028 around alpha 0.02 at 16 spp, and the averaged phase did not relax from it),
+#: 12 of 64 spp are averaged. A gradient's variance falls faster than 1 / spp (8x for 4x the samples
+#: at alpha 0.02; BENCHMARKS, "Fitting: the measurements behind the default"), so the average is
+#: best taken over few steps of many samples; relaxing takes steps (24 x 64 spp alone left ior -0.03
+#: and -0.11 off at alpha 0.6 and 1, in a low-ior basin). `gn` replaced a second Adam phase (60 x 32
+#: spp, lr 0.02) that could not relax from where the first one left a weakly determined parameter:
+#: alpha 0.02 on a 160x120 sphere ended +12 % for one seed, and +24 to +127 % at alpha 0.01-0.02 on
+#: 96x72 (BENCHMARKS, "Fitting: the measurements behind the default"). With one `gn` phase of 40
+#: steps the Cycles sphere's alpha came out -2.3 and -2.9 % (the target: 2 %), with 80 +0.8 % (one
+#: run, 66 s of fit). The averaged phase keeps one sample count: `primal_spp = "auto"` there (256 /
+#: 16 against clean targets) gave sharper answers whose reported sd no longer covered them (the
+#: recovery sweep: 146 of 150 errors within 3 sd, was 150; with the per-pixel meat 149 of 150 and 25
+#: of 30 cases within targets against this schedule's 26; BENCHMARKS, "Fitting: the measurements
+#: behind the default").
 DEFAULT_SCHEDULE = (
     Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
     Phase(solver="gn", steps=56, spp=16, jacobian_spp=16, refresh=10, average=0.5),

@@ -9,6 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.linalg import block_diag
 
+from captures.errors import InputError
+
 from ..material import to_physical
 from .problem import Problem, residuals
 
@@ -29,6 +31,14 @@ def forward_mode_refusal(problem: Problem) -> str | None:
     if problem.n_material > MAX_UNCERTAINTY_PARAMS:
         return f"{problem.n_material} free components (one forward-mode render each)"
     return None
+
+
+def refuse_forward_mode(problem: Problem, solver: str, needs: str) -> None:
+    """An `InputError` where `forward_mode_refusal` refuses `problem` to `solver`, which `needs`
+    (what it renders in forward mode)."""
+    refusal = forward_mode_refusal(problem)
+    if refusal:
+        raise InputError(f"solver {solver}: {refusal}, and {needs}: use adam for textures")
 
 
 #: The second Jacobian render of the uncertainty uses the seed plus this offset.

@@ -1,5 +1,5 @@
 """A corpus of bad inputs through `render`, `fit`, `synth` and `inspect`, run in-process through
-`fit.cli.main`: each fails before any render with exit status 2 and one plain line naming the
+`fit.entry.run`: each fails before any render with exit status 2 and one plain line naming the
 file (or option), the field and the fix; nothing is written and every input stays byte-identical.
 A few valid but unusual inputs succeed; Ctrl-C is one line and exit status 130."""
 
@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from captures.images import write_image
-from fit.cli import main
+from fit.entry import run as main
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -1834,7 +1834,7 @@ def test_a_capture_warning_is_said_once(base, tmp_path, capfd):
     image[3, 4] = np.nan
     write_image(work / "cap" / "view_00.exr", image)
     code = (
-        "import sys; from fit.cli import main; "
+        "import sys; from fit.entry import run as main; "
         f"main(['inspect', {str(work / 'cap')!r}, '--no-silhouette', '--sheet', "
         f"{str(work / 's.png')!r}])"
     )
@@ -1966,12 +1966,12 @@ def test_gains_with_one_fitted_view_are_said_to_do_nothing(base, tmp_path, capsy
 def test_a_ctrl_c_while_the_command_line_is_built_is_one_line(capsys, monkeypatch):
     """A Ctrl-C inside typer's building of the command (before click's own handling): it left a
     traceback and a death by SIGINT (seen in CI, 1 s into a fit); now one line, exit 130."""
-    import fit.cli as cli
+    import fit.entry as entry
 
     def interrupted():
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli, "_command", interrupted)
+    monkeypatch.setattr(entry, "_command", interrupted)
     code, _, stderr = run(["fit", "x.toml"], capsys)
     assert code == 130 and stderr.strip() == "interrupted: stopped by Ctrl-C or SIGTERM"
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import tomllib
 import xml.etree.ElementTree as ET
 from dataclasses import replace
 from pathlib import Path
@@ -14,6 +13,7 @@ from pathlib import Path
 import mitsuba as mi
 import numpy as np
 import pytest
+from bundled import CUP, SPHERE, cup_material
 from typer.testing import CliRunner
 
 from captures.images import read_image
@@ -36,15 +36,11 @@ from fit.export.mitsuba import image_difference
 from fit.material import build_material, load_preset, save_preset
 from fit.render import bake_texture, load_scene, render, scene_dict
 
-ROOT = Path(__file__).resolve().parents[2]
-CUP = ROOT / "configs" / "cup.toml"
-SPHERE = ROOT / "configs" / "glazed-sphere.toml"
 BUILTIN = {"bumpmap", "blendbsdf", "principled", "diffuse", "bitmap", "rgb"}
 
 
 def cup_preset(folder: Path) -> Path:
-    table = tomllib.loads(CUP.read_text())["material"]
-    return save_preset(build_material(table, CUP), folder / "cup.toml")
+    return save_preset(cup_material(), folder / "cup.toml")
 
 
 def sphere_preset(folder: Path) -> Path:
@@ -518,7 +514,7 @@ def test_baking_in_bands_is_baking_at_once(tmp_path, monkeypatch):
     shorter than the others. The largest size is refused before any work."""
     import fit.render.bake as render_bake
 
-    material = build_material(tomllib.loads(CUP.read_text())["material"], CUP)
+    material = cup_material()
     whole = plan(material, 24)
     monkeypatch.setattr(render_bake, "BAND_TEXELS", 130)  # 5 rows of 24 a band: 5x4 + 4
     banded = plan(material, 24)

@@ -639,3 +639,43 @@ def test_a_view_too_small_for_the_default_schedule_names_it_and_the_way_out(tmp_
     message = str(caught.value)
     assert "fit.phases[0].downscale = 2 (the default schedule)" in message
     assert "[[fit.phases]] of your own with downscale = 1" in message
+
+
+def test_a_run_folder_is_owned_by_one_fit_at_a_time(tmp_path, capsys):
+    """Two fits into one run folder at once both exited 0, the later one's files winning: while
+    one process owns it, a second fit is refused in one line naming the owner, before any work,
+    and leaves its files alone."""
+    from fit.commands.run_folder import LOCK, owned
+    from fit.entry import run as main
+
+    small_capture(tmp_path / "cap", spp=4)
+    (tmp_path / "fit.toml").write_text(RESUMABLE)
+    run = tmp_path / "run"
+    for force in ([], ["--force"]):
+        with owned(run):
+            (run / "summary.json").write_text("{}")  # what the owner wrote so far
+            with pytest.raises(SystemExit) as stop:
+                main(["fit", str(tmp_path / "fit.toml"), "--out", str(run), *force])
+            err = capsys.readouterr().err
+            assert stop.value.code == 2 and len(err.strip().splitlines()) == 1, err
+            assert f"another fit is writing this run folder (process {os.getpid()}" in err, err
+            assert (run / "summary.json").read_text() == "{}"
+        assert not (run / LOCK).exists()  # released when its owner ends
+
+
+def test_a_lock_left_by_a_killed_process_is_taken_over(tmp_path):
+    """A fit killed while it owned its run folder (SIGKILL: nothing runs on the way out) leaves
+    its lock file; the kernel released the lock itself, so the next fit takes it over."""
+    from fit.commands.run_folder import LOCK, owned
+
+    run = tmp_path / "run"
+    code = (
+        "import os, signal, sys; from pathlib import Path; "
+        "from fit.commands.run_folder import owned\n"
+        "with owned(Path(sys.argv[1])):\n    os.kill(os.getpid(), signal.SIGKILL)"
+    )
+    killed = subprocess.run([sys.executable, "-c", code, run], cwd=ROOT, check=False)
+    assert killed.returncode == -signal.SIGKILL and (run / LOCK).exists()
+    with owned(run):
+        assert str(os.getpid()) in (run / LOCK).read_text()
+    assert not (run / LOCK).exists()

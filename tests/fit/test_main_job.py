@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fit.cli import main
+from fit.entry import run as main
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import tomllib
-from pathlib import Path
 
 import numpy as np
 import pytest
+from bundled import CUP, ROOT, SPHERE, cup_material, cup_table
 
 from captures import InputError
 from fit.config import load_fit_config, load_render_config
@@ -20,13 +20,6 @@ from fit.material import (
     resolve,
     save_preset,
 )
-
-ROOT = Path(__file__).resolve().parents[2]
-CUP = ROOT / "configs" / "cup.toml"
-
-
-def cup():
-    return build_material(tomllib.loads(CUP.read_text())["material"], CUP)
 
 
 @pytest.mark.parametrize(
@@ -50,7 +43,7 @@ def test_bad_keys_say_what_a_key_looks_like(text):
 
 
 def test_table_lists_every_declared_parameter_of_what_was_built():
-    material = cup()
+    material = cup_material()
     # every layer's declared parameters, the masks' (texture included) and the bump
     for name in ("clay.reflectance", "clay.sigma", "glaze.ior", "glaze.sigma", "stain.sigma"):
         assert name in material.params
@@ -68,7 +61,7 @@ def test_table_lists_every_declared_parameter_of_what_was_built():
 
 
 def test_disabling_a_layer_keeps_the_others_keys():
-    table = tomllib.loads(CUP.read_text())["material"]
+    table = cup_table()
     for layer in table["layers"][1:]:
         layer["enabled"] = False
     material = build_material(table, CUP)
@@ -80,14 +73,14 @@ def test_disabling_a_layer_keeps_the_others_keys():
     with pytest.raises(KeyError, match="the bump comes from the masks of a stack of two or more"):
         resolve(material, ["bump"])
     # the stack with its bump at 0 (not built): it said "no layer '' is built"
-    table = tomllib.loads(CUP.read_text())["material"]
+    table = cup_table()
     flat = build_material({**table, "bump": 0.0}, CUP)
     with pytest.raises(KeyError, match=r"bump is 0 in \[material\], so it is not built; give"):
         resolve(flat, ["bump"])
 
 
 def test_preset_round_trips_exactly_with_textures(tmp_path):
-    material = cup()
+    material = cup_material()
     fitted = np.random.default_rng(0).uniform(0, 1, (8, 8, 1)).astype(np.float32)
     path = save_preset(
         material,
@@ -116,7 +109,7 @@ def test_preset_round_trips_exactly_with_textures(tmp_path):
 
 
 def test_single_plugin_preset_and_with_values(tmp_path):
-    material = load_render_config(ROOT / "configs" / "glazed-sphere.toml").material
+    material = load_render_config(SPHERE).material
     fitted = material.with_values({"glaze.roughness": 0.3, "glaze.pigment": [0.1, 0.2, 0.3]})
     assert fitted.values()["glaze.roughness"] == 0.3 and fitted.bsdf["roughness"] == 0.3
     assert fitted.values()["glaze.ior"] == material.values()["glaze.ior"]
@@ -125,7 +118,7 @@ def test_single_plugin_preset_and_with_values(tmp_path):
 
 
 def test_configs_accept_a_preset(tmp_path, shared_data):
-    material = load_render_config(ROOT / "configs" / "glazed-sphere.toml").material
+    material = load_render_config(SPHERE).material
     save_preset(material, tmp_path / "glaze.toml")
     text = (ROOT / "configs" / "peer-sphere.toml").read_text()
     text = text.replace('"../../shared/data', f'"{shared_data}')
@@ -149,7 +142,7 @@ def test_configs_accept_a_preset(tmp_path, shared_data):
     ],
 )
 def test_bad_presets_are_one_line_errors(tmp_path, edit, message):
-    material = load_render_config(ROOT / "configs" / "glazed-sphere.toml").material
+    material = load_render_config(SPHERE).material
     path = save_preset(material, tmp_path / "p.toml", provenance(loss=1.0))
     text = path.read_text()
     assert edit[0] in text
@@ -163,8 +156,8 @@ def test_bad_presets_are_one_line_errors(tmp_path, edit, message):
 def test_a_preset_missing_keys_loads_with_a_warning_naming_them(tmp_path, caplog):
     """A preset layerfit writes lists every parameter and option; one that leaves some out (a
     hand edit, a line deleted) takes their defaults, and says which (it was silent)."""
-    glaze = load_render_config(ROOT / "configs" / "glazed-sphere.toml").material
-    for name, material in (("glaze", glaze), ("cup", cup())):
+    glaze = load_render_config(SPHERE).material
+    for name, material in (("glaze", glaze), ("cup", cup_material())):
         path = save_preset(material, tmp_path / f"{name}.toml")
         with caplog.at_level("WARNING"):
             load_preset(path)
@@ -190,7 +183,7 @@ def test_a_preset_missing_keys_loads_with_a_warning_naming_them(tmp_path, caplog
         caplog.clear()
     # a stack with one layer left enabled, named as its type, is built as that layer (a flat
     # table): compared as one, complete
-    doc = tomllib.loads(save_preset(cup(), tmp_path / "one.toml").read_text())
+    doc = tomllib.loads(save_preset(cup_material(), tmp_path / "one.toml").read_text())
     for layer in doc["material"]["layers"]:
         layer["enabled"] = layer["name"] == "glaze"
     import tomli_w
@@ -206,7 +199,7 @@ def test_a_preset_missing_keys_loads_with_a_warning_naming_them(tmp_path, caplog
 
 
 def test_preset_with_a_missing_texture_names_it(tmp_path):
-    save_preset(cup(), tmp_path / "cup.toml")
+    save_preset(cup_material(), tmp_path / "cup.toml")
     (tmp_path / "cup.lime.mask.texture.exr").unlink()
     with pytest.raises(
         InputError, match=r"cup\.toml: material\.lime\.mask\.texture: .* not a file"

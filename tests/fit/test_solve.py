@@ -501,6 +501,24 @@ def test_non_finite_steps_are_rejected(problem, monkeypatch):
         assert result.reports[0].outcome == "diverged", solver  # said, never silent
 
 
+def keep_offered(step: int, saved: dict):
+    """An `offer` that keeps in `saved` the state offered after `step` as a resume takes it: its
+    live lists cut to their lengths, its arrays copied (the solver goes on changing them)."""
+
+    def copy(value):
+        if isinstance(value, list):
+            return [copy(v) for v in value]
+        return np.array(value) if hasattr(value, "shape") else value
+
+    def offer(state):
+        if state["step"] == step:
+            for key, value in state.items():
+                if not key.startswith("n_"):
+                    saved[key] = copy(value[: state[f"n_{key}"]] if f"n_{key}" in state else value)
+
+    return offer
+
+
 def test_adam_holds_what_it_is_told_to(problem):
     """`hold` (keys or patterns) keeps those coordinates exactly where they started while the
     rest move; a pattern that matches no free parameter is an error naming it and the keys."""
@@ -516,20 +534,8 @@ def test_adam_holds_what_it_is_told_to(problem):
 
     phase = Phase(solver="adam", steps=4, spp=4, lr=0.1, hold=["*.ior"])
     saved = {}
-
-    def offer(state):
-        if state["step"] == 2:
-            saved.update(
-                step=2,
-                u=np.array(state["u"]),
-                leaves=[np.array(x) for x in state["leaves"]],
-                history=list(state["history"][: state["n_history"]]),
-                tail=[],
-                rejected=state["rejected"],
-            )
-
     run = functools.partial(SOLVERS["adam"]().run, problem, u0, steps=4, spp=4, seed=0)
-    whole = run(downscale=1, options=phase.options, offer=offer)
+    whole = run(downscale=1, options=phase.options, offer=keep_offered(2, saved))
     resumed = run(downscale=1, options=phase.options, resume=saved)
     np.testing.assert_allclose(resumed.u, whole.u, rtol=1e-5, atol=1e-6)
     assert resumed.u[4] == u0[4]
@@ -591,23 +597,7 @@ def test_gauss_newton_converges_and_resumes(larger):
     start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.12, "glaze.ior": 1.4}
     u0 = problem.unconstrained(start)
     saved = {}
-
-    def offer(state):
-        if state["step"] == 16:
-            saved.update(
-                step=16,
-                u=np.array(state["u"]),
-                leaves=[np.array(x) for x in state["leaves"]],
-                history=list(state["history"][: state["n_history"]]),
-                tail=[np.array(t) for t in state["tail"][: state["n_tail"]]],
-                tail_gradients=[
-                    np.array(t) for t in state["tail_gradients"][: state["n_tail_gradients"]]
-                ],
-                rejected=state["rejected"],
-                mean_residual=np.array(state["mean_residual"]),
-            )
-
-    whole = _gn(problem, u0, 24, offer=offer)
+    whole = _gn(problem, u0, 24, offer=keep_offered(16, saved))
     check(whole.values)
     assert whole.reports[0].rejected == 0 and len(whole.history) == 24
     resumed = _gn(problem, u0, 24, resume=saved)

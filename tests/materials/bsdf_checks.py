@@ -113,6 +113,13 @@ def fd_derivative(bsdf, key: str, value, fn, h: float, channel: int | None = Non
     return (4 * fine - coarse) / 3, rounding
 
 
+def ad_and_fd(bsdf, key: str, value, fn, h: float, channel: int | None = None):
+    """`fn(bsdf)`'s derivative with respect to `key` at `value` both ways: `(AD, FD, FD's rounding
+    error)`, from `ad_derivative` and `fd_derivative` (step `h`)."""
+    ad = ad_derivative(bsdf, key, value, fn, channel)
+    return ad, *fd_derivative(bsdf, key, value, fn, h, channel)
+
+
 def assert_derivative(ad, fd, rounding, rtol: float, what: str, min_fraction: float = 1.0) -> None:
     """AD equals FD within `rtol` plus FD's rounding error, plus 1e-5 of the largest derivative
     (FD's truncation error grows in a lobe's far tail, where the values are ~1e-8 of the peak),

@@ -8,10 +8,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 from bsdf_checks import (
+    ad_and_fd,
     ad_derivative,
     assert_derivative,
     direction,
-    fd_derivative,
     hemisphere,
     interaction,
     rgb,
@@ -35,13 +35,9 @@ def traverse_key(spec) -> str:
 
 
 def derivatives(bsdf, spec, value, fn, h):
-    """[(channel, AD, (FD, FD rounding error))] for each channel of the parameter."""
-    key = traverse_key(spec)
+    """[(channel, AD, FD, FD rounding error)] for each channel of the parameter."""
     channels = range(3) if spec.kind == "rgb" else [None]
-    return [
-        (c, ad_derivative(bsdf, key, value, fn, c), fd_derivative(bsdf, key, value, fn, h, c))
-        for c in channels
-    ]
+    return [(c, *ad_and_fd(bsdf, traverse_key(spec), value, fn, h, c)) for c in channels]
 
 
 def make(kind: str, **options) -> mi.BSDF:
@@ -79,7 +75,7 @@ def test_ad_matches_finite_differences(name):
     wi, wo = hemisphere(512, seed=21, min_cos=0.02), hemisphere(512, seed=22, min_cos=0.02)
     fn = eval_fn(wi, wo)
     for spec in params_of(kind):
-        for channel, ad, (fd, rounding) in derivatives(bsdf, spec, MID[spec.key], fn, h=1e-3):
+        for channel, ad, fd, rounding in derivatives(bsdf, spec, MID[spec.key], fn, h=1e-3):
             what = f"{name} {spec.key} channel {channel}"
             assert np.abs(fd).max() > 1e-4, f"{what}: the value does not depend on it here"
             assert_derivative(ad, fd, rounding, 1e-2, what)
@@ -172,7 +168,7 @@ def check_extreme(bsdf, specs, values):
         elif spec.key == "ior":
             h = min(0.01, (value - 1.0) / 2)
         depends = False
-        for channel, ad, (fd, rounding) in derivatives(bsdf, spec, value, fn, h):
+        for channel, ad, fd, rounding in derivatives(bsdf, spec, value, fn, h):
             where = f"{spec.key} channel {channel} at {values}"
             assert_derivative(ad, fd, rounding, 3e-2, where)
             depends |= bool(np.any(np.abs(fd) > 10 * (rounding + 1e-12)))
@@ -203,9 +199,9 @@ def test_sigma_gradient_at_fit_start(kind):
     wi, wo = hemisphere(256, seed=51, min_cos=0.05), hemisphere(256, seed=52, min_cos=0.05)
     fn = eval_fn(wi, wo)
     spec = (GLAZE_PARAMS if kind == "glaze" else OREN_NAYAR_PARAMS)["sigma"]
-    ((_, ad0, _),) = derivatives(bsdf, spec, 0.0, fn, 1e-4)
+    ((_, ad0, _, _),) = derivatives(bsdf, spec, 0.0, fn, 1e-4)
     assert np.all(ad0 == 0)
     start = spec.lower + BOUND_MARGIN * (spec.upper - spec.lower)
-    ((_, ad, (fd, rounding)),) = derivatives(bsdf, spec, start, fn, 5e-4)
+    ((_, ad, fd, rounding),) = derivatives(bsdf, spec, start, fn, 5e-4)
     assert np.abs(ad).max() > 1e-4
     assert_derivative(ad, fd, rounding, 0.05, f"{kind} sigma at {start}")

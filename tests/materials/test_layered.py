@@ -7,6 +7,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 from bsdf_checks import (
+    ad_and_fd,
     ad_derivative,
     assert_consistent,
     assert_derivative,
@@ -101,8 +102,7 @@ def test_mask_derivatives(threshold, softness):
 
     assert np.all(np.isfinite(rgb(fn(mask))))
     for key, value in (("threshold", threshold), ("softness", softness)):
-        ad = ad_derivative(mask, key, value, fn)
-        fd, rounding = fd_derivative(mask, key, value, fn, h=min(1e-3, softness / 20))
+        ad, fd, rounding = ad_and_fd(mask, key, value, fn, h=min(1e-3, softness / 20))
         assert_derivative(ad, fd, rounding, 2e-2, f"mask {key} at t={threshold}, s={softness}")
         if threshold == 0.5:
             assert np.abs(ad).max() > 1e-3, f"{key}: gradient vanishes at a mid threshold"
@@ -278,8 +278,7 @@ def test_shares_ad_matches_fd(key):
     def fn(b):
         return mi.Color3f(*b.shares(si))
 
-    ad = ad_derivative(bsdf, key, value, fn)
-    fd, rounding = fd_derivative(bsdf, key, value, fn, h=1e-3)
+    ad, fd, rounding = ad_and_fd(bsdf, key, value, fn, h=1e-3)
     assert_derivative(ad, fd, rounding, 2e-2, key)
     assert np.abs(ad).max() > 0.1
 
@@ -322,8 +321,7 @@ def test_bump_bends_the_normal_and_differentiates():
     def fn(b):
         return b.eval(ctx, si, wo)
 
-    ad = ad_derivative(bsdf, "bump", 0.004, fn)
-    fd, rounding = fd_derivative(bsdf, "bump", 0.004, fn, h=1e-4)
+    ad, fd, rounding = ad_and_fd(bsdf, "bump", 0.004, fn, h=1e-4)
     # measured: 99.8-100 % of the directions agree, the rest sit at lobe kinks
     assert_derivative(ad, fd, rounding, 5e-2, "bump", min_fraction=0.995)
     assert np.abs(ad).max() > 0
@@ -391,8 +389,7 @@ def test_glaze_noise_derivatives(key, value):
         return b.eval(ctx, si, wo)
 
     assert np.all(np.isfinite(rgb(fn(bsdf))))
-    ad = ad_derivative(bsdf, key, value, fn)
-    fd, rounding = fd_derivative(bsdf, key, value, fn, h=1e-3)
+    ad, fd, rounding = ad_and_fd(bsdf, key, value, fn, h=1e-3)
     # pigment_noise clips the pigment to [0, 1]: skip the few kinks at the clip
     fine = np.abs(fd - ad) < 0.5 * np.abs(fd) + 1e-3 if key == "pigment_noise" else ad == ad
     assert np.mean(fine) > 0.95
