@@ -7,8 +7,14 @@ clearcoat), a coloured clearcoat, per-layer lobes, bump or normal noise. So the 
 
 - `diffuseColor`: sum_k w_k c_k (each layer's colour times its Lambert factor, weighted by its
   share w_k = m_k prod_{j>k} (1 - m_j)); a constant when nothing varies;
-- specular workflow: `specularColor` = sum over glaze layers of w_k F0(ior_k), F0 =
-  ((ior - 1) / (ior + 1))^2: the glaze's reflection where the glaze is, none elsewhere;
+- where the glaze covers the surface whole (one glaze, or no glaze: `ior` 1, no reflection), the
+  metallic workflow: `metallic` 0 and the glaze's `ior`, so the reflection follows the Fresnel
+  curve (Blender imports it as a Principled BSDF of that IOR: highlights 0.98-1.00 of layerfit's
+  own, against 0.73-0.86 for the same glaze as a `specularColor`, which Blender reads as a
+  Specular Tint);
+- where its share varies (a stack), the specular workflow: `specularColor` = sum over glaze
+  layers of w_k F0(ior_k), F0 = ((ior - 1) / (ior + 1))^2: the glaze's reflection where the
+  glaze is, none elsewhere (the one input that can vary it over the surface);
 - `roughness`: the GGX r of the glaze's Beckmann alpha (`mapping.ggx_roughness`; the preview
   surface squares it as OpenPBR does); `ior`: the glaze's; `clearcoat` 0.
 """
@@ -27,11 +33,12 @@ from .mapping import as_lambert, ggx_roughness
 FILE = "material.usda"
 #: What a UsdPreviewSurface cannot hold of a layerfit material.
 LIMITS = (
-    "UsdPreviewSurface cannot hold: a diffuse roughness (Oren-Nayar sigma; colours are scaled to "
-    "the best Lambertian instead), more than one ior (one ior for base and clearcoat), a coloured "
-    "clearcoat (white only; the glaze is the base's specular instead: specularColor = its share "
-    "times F0(ior)), layers (their shares are baked into the maps), the bump from the masks and "
-    "the glaze's normal noise."
+    "UsdPreviewSurface cannot hold: a diffuse roughness (Oren-Nayar sigma; colours are scaled "
+    "to the best Lambertian instead), more than one ior (one ior for base and clearcoat), a "
+    "coloured clearcoat (white only; the glaze is the base's reflection instead: metallic 0 and"
+    " its ior where it covers the surface, else specularColor = its share times F0(ior)), "
+    "layers (their shares are baked into the maps), the bump from the masks and the glaze's "
+    "normal noise."
 )
 
 
@@ -58,14 +65,14 @@ def maps(baked: Plan) -> dict[str, np.ndarray | float | tuple]:
         (layer,) = baked.layers
         colour = as_lambert(layer.colour, layer.sigma, layer.diffuse)
         out["diffuseColor"] = tuple(float(c) for c in colour)
-    if len(baked.layers) > 1 and glazes:
+    if len(baked.layers) > 1 and glazes:  # the glaze's share varies: the specular workflow
         spec = sum(w * _f0(layer.ior) for w, layer in glazes)
         out["specularColor"] = np.repeat(np.asarray(spec, np.float32)[..., None], 3, -1)
-    else:
-        f0 = _f0(glazes[0][1].ior) if glazes else 0.0
-        out["specularColor"] = (f0, f0, f0)
+        out["useSpecularWorkflow"] = 1
+    else:  # the glaze everywhere, or nowhere (ior 1: no reflection)
+        out["useSpecularWorkflow"], out["metallic"] = 0, 0.0
     out["roughness"] = ggx_roughness(glazes[-1][1].roughness) if glazes else 1.0
-    out["ior"] = glazes[-1][1].ior if glazes else 1.5
+    out["ior"] = glazes[-1][1].ior if glazes else (1.5 if len(baked.layers) > 1 else 1.0)
     return out
 
 
@@ -82,13 +89,16 @@ def export(material: Material, folder: Path, size: int, progress: Progress | Non
     stage.SetDefaultPrim(material_prim.GetPrim())
     shader = UsdShade.Shader.Define(stage, "/Material/PreviewSurface")
     shader.CreateIdAttr("UsdPreviewSurface")
-    shader.CreateInput("useSpecularWorkflow", Sdf.ValueTypeNames.Int).Set(1)
+    workflow = inputs["useSpecularWorkflow"]
+    shader.CreateInput("useSpecularWorkflow", Sdf.ValueTypeNames.Int).Set(workflow)
+    if "metallic" in inputs:
+        shader.CreateInput("metallic", Sdf.ValueTypeNames.Float).Set(inputs["metallic"])
     shader.CreateInput("clearcoat", Sdf.ValueTypeNames.Float).Set(0.0)
     shader.CreateInput("opacity", Sdf.ValueTypeNames.Float).Set(1.0)
     shader.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(float(inputs["roughness"]))
     shader.CreateInput("ior", Sdf.ValueTypeNames.Float).Set(float(inputs["ior"]))
     reader = None
-    for name in ("diffuseColor", "specularColor"):
+    for name in ("diffuseColor", "specularColor")[: 1 + workflow]:
         value = inputs[name]
         target = shader.CreateInput(name, Sdf.ValueTypeNames.Color3f)
         if isinstance(value, tuple):

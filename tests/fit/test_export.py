@@ -291,8 +291,14 @@ def test_usd_single_glaze_is_constants(tmp_path):
     shader = UsdShade.Shader(stage.GetPrimAtPath("/Material/PreviewSurface"))
     pigment = np.multiply([0.1, 0.22, 0.55], lambert_scale(0.0))
     assert np.allclose(list(shader.GetInput("diffuseColor").Get()), pigment)
-    f0 = ((1.52 - 1) / (1.52 + 1)) ** 2
-    assert np.allclose(list(shader.GetInput("specularColor").Get()), [f0] * 3)
+    # the glaze covers it whole: the metallic workflow, its reflection from the ior (Blender
+    # read a specularColor as a Specular Tint: highlights 0.73-0.86 of layerfit's own)
+    assert shader.GetInput("useSpecularWorkflow").Get() == 0 and not shader.GetInput(
+        "specularColor"
+    )
+    assert shader.GetInput("metallic").Get() == 0 and shader.GetInput("ior").Get() == pytest.approx(
+        1.52
+    )
 
 
 def test_usd_textured_oren_nayar_bakes_its_texture(tmp_path):

@@ -203,7 +203,8 @@ def test_ctrl_c_while_starting_is_one_line_and_exit_130(tmp_path, delay):
     the entry point runs, in Python's own start, its default handler still prints one.) In the
     slow target: once in about 40 runs the process ended by SIGINT (-2) after it had said 130
     (now exited through `fit.entry._exit_interrupted`, not reproduced since); the windows it
-    found are tested in the default run in-process (test_bad_inputs: the command's building)."""
+    found are tested in the default run in-process (test_interrupts_and_permissions: the
+    command's building)."""
     small_capture(tmp_path / "cap")
     (tmp_path / "fit.toml").write_text(RESUMABLE)
     out = tmp_path / "run"
