@@ -74,7 +74,11 @@ class FieldError(ValueError):
 
 # Types --------------------------------------------------------------------------------------------
 
-FiniteFloat = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+#: The largest magnitude of a number in a scene, capture or config: 1e12 (metres, watts, radiance
+#: or a factor) is past anything photographed, and past it the products of geometry (a norm, a
+#: cross product) overflow, or Mitsuba's float32 holds infinities.
+LARGEST = 1e12
+FiniteFloat = Annotated[float, Strict(), Field(allow_inf_nan=False, ge=-LARGEST, le=LARGEST)]
 PositiveFloat = Annotated[FiniteFloat, Field(gt=0)]
 NonNegativeFloat = Annotated[FiniteFloat, Field(ge=0)]
 PositiveInt = Annotated[int, Strict(), Field(ge=1)]

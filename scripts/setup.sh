@@ -4,16 +4,21 @@
 # `--with-tests` also installs the test tools (pytest, hypothesis, playwright, ruff: the `test` extra);
 # `--with-chromium` (or LAYERFIT_CHROMIUM=1) Debian's chromium for the HTML report test, if
 # /usr/bin/chromium is missing. scripts/test.sh passes both; the main job (scripts/run.sh) neither.
+# `--with-blender` (scripts/test.sh --slow) also makes .venv-blender, Blender as a Python module
+# (bpy, scripts/blender-requirements.txt) for the test that renders exports in Blender: it needs
+# Python 3.11 and NumPy < 2, so it has a venv of its own; where it cannot be made, that test skips.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 with_chromium=${LAYERFIT_CHROMIUM:-0}
 with_tests=0
+with_blender=0
 for arg in "$@"; do
   case "$arg" in
     --with-chromium) with_chromium=1 ;;
     --with-tests) with_tests=1 ;;
-    *) echo "setup: unknown option $arg (known: --with-tests, --with-chromium)" >&2; exit 2 ;;
+    --with-blender) with_blender=1 ;;
+    *) echo "setup: unknown option $arg (known: --with-tests, --with-chromium, --with-blender)" >&2; exit 2 ;;
   esac
 done
 
@@ -71,4 +76,19 @@ if [ ! -f "$stamp" ] || ! cmp -s pyproject.toml "$stamp"; then
   .venv/bin/python -m pip install -q -e "$target"
   cp pyproject.toml "$stamp"
   cp pyproject.toml .venv/.layerfit-installed  # the test tools' install holds the project's
+fi
+
+if [ "$with_blender" = 1 ]; then  # best effort: the Blender test skips without it
+  blender_py=$(command -v python3.11 || true)
+  if [ -z "$blender_py" ]; then
+    echo "setup: no python3.11 for Blender's bpy; the Blender export test will be skipped" >&2
+  elif [ ! -f .venv-blender/.installed ] || ! cmp -s scripts/blender-requirements.txt .venv-blender/.installed; then
+    echo "setup: installing Blender as a Python module into .venv-blender (about 400 MB)"
+    if "$blender_py" -m venv .venv-blender && .venv-blender/bin/python -m pip install -q -r scripts/blender-requirements.txt; then
+      cp scripts/blender-requirements.txt .venv-blender/.installed
+    else
+      echo "setup: bpy could not be installed; the Blender export test will be skipped" >&2
+      rm -rf .venv-blender
+    fi
+  fi
 fi

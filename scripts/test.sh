@@ -3,6 +3,10 @@
 # suite (under 10 minutes on 2 cores). `--slow` runs the heavy cases.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+if [ "${1:-}" = "--slow" ]; then
+  shift
+  bash scripts/setup.sh --with-tests --with-chromium --with-blender
+  exec .venv/bin/python -m pytest -m slow "$@"
+fi
 bash scripts/setup.sh --with-tests --with-chromium
-if [ "${1:-}" = "--slow" ]; then shift; exec .venv/bin/python -m pytest -m slow "$@"; fi
 exec .venv/bin/python -m pytest "$@"

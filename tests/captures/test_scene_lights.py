@@ -108,11 +108,14 @@ def test_a_light_that_lights_nothing_is_refused_by_its_field(tmp_path):
 
 @pytest.mark.parametrize(
     "huge, said",
-    [(1e200, r"lights\[0\].*orthogonal unit vectors"), (math.inf, r"u_axis\[0\]: got inf")],
+    [
+        (1e200, r"u_axis\[0\]: got 1e\+200; should be less than"),
+        (math.inf, r"u_axis\[0\]: got inf"),
+    ],
 )
 def test_a_light_frame_of_huge_axes_is_one_line(tmp_path, huge, said):
     """An axis of 1e200 (found by the fuzzer: its products overflowed, a RuntimeWarning that the
-    test run makes an error) is refused as axes that are not orthogonal unit vectors."""
+    test run makes an error) is refused by its size, as every number past 1e12 is."""
     light = {"center": [0, 0, 3], "u_axis": [huge, 0, 0], "v_axis": [0, 1, 0], "size": [1, 1]}
     light |= {"emit_direction": [0, 0, -1], "radiance": 5.0}
     with pytest.raises(CaptureError, match=said):

@@ -1,0 +1,110 @@
+"""The USD export where artists open it: Blender (bpy, Cycles) renders the exported material in a
+peer scene, against layerfit's own render of the same preset in the same scene."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from captures import open_capture
+from captures.images import read_image
+from fit.commands.export import export
+from fit.material import build_material, save_preset
+from fit.render import coverage_dict, load_scene, render, scene_dict
+
+ROOT = Path(__file__).resolve().parents[2]
+BLENDER = ROOT / ".venv-blender" / "bin" / "python"
+SCRIPT = Path(__file__).with_name("blender_render.py")
+#: Samples per pixel of both renders: at 256 the brightest 1 % of a Lambertian sphere differed
+#: by 9 % (their noise), at 2048 by 2.5 % (mean within 0.05 %, relative RMSE 0.03).
+SPP = 2048
+
+#: name: (peer scene, glaze, views). A glazed ivory sphere, and a glossy amber torus (view 4 of
+#: the torus looks from behind a light: a black card in Mitsuba, nothing in Cycles).
+CASES = {
+    "sphere": (
+        "peer-cycles/sphere-blue",
+        {"pigment": [0.8, 0.75, 0.62], "roughness": 0.2, "ior": 1.45},
+        (0, 1),
+    ),
+    "torus": (
+        "peer-cycles/torus-amber",
+        {"pigment": [0.55, 0.33, 0.12], "roughness": 0.0144, "ior": 1.6},
+        (0, 2),
+    ),
+}
+
+
+@pytest.fixture(scope="module")
+def blender() -> Path:
+    if not BLENDER.is_file():
+        pytest.skip(
+            f"no Blender Python at {BLENDER}: `bash scripts/setup.sh --with-blender` makes it "
+            "(bpy needs Python 3.11)"
+        )
+    return BLENDER
+
+
+def compare(blender_image: np.ndarray, native: np.ndarray, mask: np.ndarray) -> dict:
+    """Blender's render against layerfit's over the object's pixels: the ratio of their means,
+    of their brightest 1 % (each image's own, by luminance), and the relative RMSE."""
+    b, n = blender_image[mask], native[mask]
+
+    def top(image):
+        luminance = image @ np.array([0.2126, 0.7152, 0.0722])
+        return float(np.sort(luminance)[-max(1, len(luminance) // 100) :].mean())
+
+    return {
+        "mean": float(b.mean() / n.mean()),
+        "highlight": top(b) / top(n),
+        "rmse": float(np.sqrt(np.sum((b - n) ** 2) / np.sum(n**2))),
+    }
+
+
+def blender_render(blender: Path, scene_json: Path, view: int, usda: Path, out: Path) -> np.ndarray:
+    args = [blender, SCRIPT, scene_json, view, usda, out, SPP]
+    done = subprocess.run(
+        [str(a) for a in args], capture_output=True, text=True, check=False, timeout=900
+    )
+    assert done.returncode == 0 and out.is_file(), done.stderr[-3000:]
+    return read_image(out)[..., :3]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "name",
+    [
+        pytest.param(
+            "sphere",
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="2026-12-05: the brightest 1 % of view 1 is 0.88 of layerfit's (view 0: "
+                "0.99), relative RMSE 0.057 and 0.092: Blender's GGX of the mapped roughness "
+                "against the Beckmann lobe at alpha 0.2 (the torus at 0.0144 agrees)",
+            ),
+        ),
+        "torus",
+    ],
+)
+def test_the_usd_export_renders_in_blender_as_layerfit_does(name, blender, shared_data, tmp_path):
+    """Mean within 3 %, the brightest 1 % within 5 % on both shapes; relative RMSE <= 0.05 on
+    the sphere (the glossy torus's few highlight pixels are left to the highlight's check)."""
+    peer, glaze, views = CASES[name]
+    scene_json = shared_data / peer / "scene.json"
+    material = build_material({"type": "glaze", **glaze})
+    save_preset(material, tmp_path / "preset.toml")
+    usda = export(tmp_path / "preset.toml", "usd", tmp_path / "usd", size=64)
+    capture = open_capture(scene_json)
+    for view in views:
+        scene = capture.scene_of(view)
+        native = render(load_scene(scene_dict(scene, material, 0, SPP)), SPP, seed=5)
+        coverage = render(load_scene(coverage_dict(scene, 0, 16)), 16)[..., 0]
+        image = blender_render(blender, scene_json, view, usda, tmp_path / f"blender{view}.exr")
+        got = compare(image, native, coverage > 0.99)
+        assert abs(got["mean"] - 1) <= 0.03, (view, got)
+        assert abs(got["highlight"] - 1) <= 0.05, (view, got)
+        if name == "sphere":
+            assert got["rmse"] <= 0.05, (view, got)
