@@ -9,9 +9,9 @@ clearcoat), a coloured clearcoat, per-layer lobes, bump or normal noise. So the 
   share w_k = m_k prod_{j>k} (1 - m_j)); a constant when nothing varies;
 - where the glaze covers the surface whole (one glaze, or no glaze: `ior` 1, no reflection), the
   metallic workflow: `metallic` 0 and the glaze's `ior`, so the reflection follows the Fresnel
-  curve (Blender imports it as a Principled BSDF of that IOR: highlights 0.98-1.00 of layerfit's
-  own, against 0.73-0.86 for the same glaze as a `specularColor`, which Blender reads as a
-  Specular Tint);
+  curve (Blender imports it as a Principled BSDF of that IOR: the brightest 1 % at 0.99 and
+  0.88 of layerfit's own in two views, against 0.90 and 0.76 for the same glaze as a
+  `specularColor`, which Blender reads as a Specular Tint; docs/exports.md);
 - where its share varies (a stack), the specular workflow: `specularColor` = sum over glaze
   layers of w_k F0(ior_k), F0 = ((ior - 1) / (ior + 1))^2: the glaze's reflection where the
   glaze is, none elsewhere (the one input that can vary it over the surface);

@@ -292,7 +292,7 @@ def test_usd_single_glaze_is_constants(tmp_path):
     pigment = np.multiply([0.1, 0.22, 0.55], lambert_scale(0.0))
     assert np.allclose(list(shader.GetInput("diffuseColor").Get()), pigment)
     # the glaze covers it whole: the metallic workflow, its reflection from the ior (Blender
-    # read a specularColor as a Specular Tint: highlights 0.73-0.86 of layerfit's own)
+    # read a specularColor as a Specular Tint: highlights 0.90 and 0.76 of layerfit's own)
     assert shader.GetInput("useSpecularWorkflow").Get() == 0 and not shader.GetInput(
         "specularColor"
     )
