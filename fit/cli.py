@@ -115,13 +115,18 @@ def bench(
     only: Annotated[
         str | None,
         typer.Option(
-            help="Run one table: bsdf, cup, fit, long, recovery, grid, profile or versus (the "
-            "last six take minutes to hours: not run by default)."
+            help="Run one table: bsdf, cup, fit, long, recovery, grid, profile, versus or "
+            "relight (the last seven take minutes to hours: not run by default)."
         ),
     ] = None,
     fit_config: Annotated[
-        Path, typer.Option(help="--only fit: the fit config whose schedules are compared.")
-    ] = Path("configs/peer-sphere.toml"),
+        Path | None,
+        typer.Option(
+            help="--only fit: the fit config whose schedules are compared (default "
+            "configs/peer-sphere.toml); --only relight: a DiLiGenT fit config with held-out "
+            "lights (default configs/diligent-pot1.toml)."
+        ),
+    ] = None,
     steps: Annotated[int, typer.Option(help="--only long: Adam steps of the long run.")] = 1000,
     size: Annotated[str, typer.Option(help="--only recovery, profile: WIDTHxHEIGHT.")] = "160x120",
     shapes: Annotated[
@@ -149,7 +154,8 @@ def bench(
 ) -> None:
     """Speed and accuracy tables: our BSDFs vs Mitsuba's built-ins, the cup's stack vs its layers,
     and (--only, minutes to hours) fit schedules, long runs, the recovery sweep, the grid, the
-    profile of a fit, the default against the loop a Mitsuba user writes (docs/benchmarks.md)."""
+    profile of a fit, the default against the loop a Mitsuba user writes, relighting real
+    photographs against per-pixel models (docs/benchmarks.md)."""
     options = dict(locals())
     from .bench import run
 

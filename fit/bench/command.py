@@ -16,7 +16,9 @@ SCENES = (DEFAULT_SCENE, CUP_SCENE)
 #: its samples under Mitsuba's 2^32 a render.
 MAX_SPP = 2**14
 #: The tables `only` names. Without `only` the first two run; the others take minutes to hours.
-TABLES = ("bsdf", "cup", "fit", "long", "recovery", "grid", "profile", "versus")
+TABLES = ("bsdf", "cup", "fit", "long", "recovery", "grid", "profile", "versus", "relight")
+#: The fit config a table reads by default (`fit_config` None).
+FIT_CONFIGS = {"relight": Path("configs/diligent-pot1.toml")}
 #: The tables that keep their finished cases in a results file (a rerun resumes).
 RESUMABLE = ("recovery", "grid", "versus")
 #: The tables drawn to a PNG besides.
@@ -36,7 +38,7 @@ def run(
     spp: int = 64,
     repeats: int = 7,
     only: str | None = None,
-    fit_config: Path = Path("configs/peer-sphere.toml"),
+    fit_config: Path | None = None,
     steps: int = 1000,
     size: str = "160x120",
     shapes: str = "sphere,torus",
@@ -54,11 +56,12 @@ def run(
     `layerfit bench` takes them. Every option and output is checked first (an `InputError`
     naming the option and the fix), then the variant is chosen (`fit.commands.common.start`)
     and the tables run, shown on `progress` (a `rich.progress.Progress`; None: none shown).
-    `results`: the resumable tables' JSON (default bench-<table>.json); the long, grid and
-    versus tables draw a PNG beside `out` (or bench-<table>.png); `out`: the tables as
-    Markdown. Bad input met during the work (a fit config's free keys, a results file of
-    another setting) is an `InputError` too; Ctrl-C, `fit.errors.Stopped` saying what was
-    kept. Returns the tables and the files written."""
+    `fit_config`: None for each table's default (`FIT_CONFIGS`). `results`: the resumable
+    tables' JSON (default bench-<table>.json); the long, grid and versus tables draw a PNG
+    beside `out` (or bench-<table>.png); `out`: the tables as Markdown. Bad input met during
+    the work (a fit config's free keys, a results file of another setting) is an `InputError`
+    too; Ctrl-C, `fit.errors.Stopped` saying what was kept. Returns the tables and the files
+    written."""
     from captures.files import check_output, write_text
 
     from ..commands.common import start
@@ -67,6 +70,8 @@ def run(
     if only not in (None, *TABLES):
         choices = ", ".join(TABLES[:-1]) + " or " + TABLES[-1]
         raise InputError(f"--only {only!r}: unknown table; choose {choices}")
+    if fit_config is None:
+        fit_config = FIT_CONFIGS.get(only or "", Path("configs/peer-sphere.toml"))
     for option, value, low, high in (
         ("--spp", spp, 1, MAX_SPP),
         ("--repeats", repeats, 1, None),
@@ -116,6 +121,7 @@ def run(
     from .long_runs import long_run, long_run_table, plot_long_run
     from .profile import profile_table
     from .recovery import recovery_table
+    from .relight import relight_table
     from .schedules import fit_trade_table
     from .versus import versus_table
 
@@ -143,6 +149,8 @@ def run(
                 tables.append(grid_table(cells, results, progress, plot=plot))
             if only == "versus":
                 tables.append(versus_table(seeds, results, progress, plot=plot))
+            if only == "relight":
+                tables.append(relight_table(fit_config, progress))
         except InputError:
             raise
         except ValueError as err:  # bad input met during the work (pydantic's errors among it)

@@ -403,7 +403,14 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
             )
     for message in messages:
         _warn(capture, message)
-    refusal = forward_mode_refusal(problem)
+    # with textures free, forward-mode solvers move the scalars, the textures held
+    scalars = [f for f in free if not f.shape]
+    if problem.textures and not scalars:
+        refusal = f"every free parameter is a texture ({', '.join(problem.textures)})"
+    elif problem.textures:
+        refusal = forward_mode_refusal(dataclasses.replace(problem, free=scalars, _cache={}))
+    else:
+        refusal = forward_mode_refusal(problem)
     # the default schedule's phases are named as such, with how to give others
     given = "" if "phases" in cfg.settings.model_fields_set else " (the default schedule)"
     largest, sizes = 0, set()

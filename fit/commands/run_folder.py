@@ -102,7 +102,9 @@ def write_run(
             provenance(cfg.capture, cfg.path, result.loss, std or None),
             textures,
         )
-    shown = masks(fitted_material) | {k: t[..., 0] for k, t in textures.items()}
+    shown = masks(fitted_material) | {
+        k: t if t.shape[-1] == 3 else t[..., 0] for k, t in textures.items()
+    }
     title = f"{cfg.path.name}{' (interrupted)' if interrupted else ''}"
     write_report(out, summary, panels, shown, title)
     # the summary last: beside no checkpoint, it marks a finished run folder (batches skip those)

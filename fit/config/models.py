@@ -23,6 +23,7 @@ from captures.model import (
 from ..errors import ConfigError
 from ..limits import MAX_SEED, MAX_SPP
 from ..material import Material, load_material, read_toml
+from ..material.textures import MAX_TEXELS, with_free_textures
 from ..solvers.schedule import DEFAULT_SCHEDULE, Phase, default_schedule
 
 
@@ -68,9 +69,23 @@ class FitSettings(StrictModel):
         return self
 
     @model_validator(mode="after")
+    def _textures_are_free(self):
+        for key, (width, height) in self.textures.items():
+            if key not in self.free:
+                raise FieldError(f"textures.{key}", f"is not in fit.free; add {key!r} to it")
+            if width * height > MAX_TEXELS:
+                raise FieldError(
+                    f"textures.{key}",
+                    f"{width} x {height} texels is more than {MAX_TEXELS}; give fewer",
+                )
+        return self
+
+    @model_validator(mode="after")
     def _default_phases(self):
         if "phases" not in self.model_fields_set:
-            object.__setattr__(self, "phases", list(default_schedule(self.free)))
+            scalars = any(k not in self.textures for k in self.free)
+            phases = default_schedule(self.free, bool(self.textures), scalars)
+            object.__setattr__(self, "phases", list(phases))
         return self
 
     @field_validator("gains", mode="before")
@@ -80,6 +95,10 @@ class FitSettings(StrictModel):
             return value
         raise ValueError(f'got {value!r}; should be true, false or "exposure"')
 
+    textures: dict[str, tuple[PositiveInt, PositiveInt]] = Field(default_factory=dict)
+    """Parameters fitted as textures: key = [width, height] in texels; colours (glaze.pigment,
+    clay.reflectance) and masks' textures (<layer>.mask.texture), each also in `free`, starting
+    from the material's value (fit/material/textures.py)."""
     loss: Literal["l2", "huber", "cauchy"] = "l2"
     """How a pixel's difference counts: l2, or robust huber / cauchy (biased under noise)."""
     loss_scale: PositiveFloat | None = None
@@ -190,5 +209,14 @@ def load_fit_config(
                 "check the path"
             )
     material = load_material(doc.material, path)
+    try:
+        material = with_free_textures(material, doc.fit.textures)
+    except KeyError as err:
+        raise ConfigError(f"{path}: fit.textures.{err.args[0]}") from None
     settings = doc.fit if seed is None else doc.fit.model_copy(update={"seed": seed})
+    textures = [k for k in settings.free if k in material.texture_files()]
+    if textures and "phases" not in settings.model_fields_set:  # a texture file's texels free
+        scalars = any(k not in textures for k in settings.free)
+        settings = settings.model_copy()  # still the default schedule: not a field set
+        object.__setattr__(settings, "phases", list(default_schedule(settings.free, True, scalars)))
     return FitConfig(path, Path(capture), material, settings)

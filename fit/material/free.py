@@ -55,12 +55,18 @@ def resolve(material: Material, keys: list[str]) -> list[Free]:
             raise KeyError(f"{text}: {_why_not(material, text)}")
         if param.value is not None:
             out.append(Free(text, param.traverse, param.spec, start=param.value))
-        elif param.spec.kind == "texture":  # a mask's texels as painted
-            texels = texture_data({"type": "bitmap", "filename": str(param.texture), "raw": True})
+        else:  # a mask's texels as painted, or a colour given as a texture file
+            raw = param.spec.kind == "texture"  # 8-bit colours are sRGB-decoded, masks linear
+            bitmap = {"type": "bitmap", "filename": str(param.texture), "raw": raw}
+            texels = texture_data(bitmap)
+            channels = 1 if param.spec.kind == "texture" else 3
+            if texels.shape[-1] != channels:
+                raise KeyError(
+                    f"{text}: its texture {param.texture.name} has {texels.shape[-1]} channels, "
+                    f"{channels} wanted; save it with {channels}"
+                )
             start = texels.ravel().tolist()
             out.append(Free(text, param.traverse, param.spec, texels.shape, start))
-        else:
-            raise KeyError(f"{text}: is a texture file ({param.texture.name}); give a value to fit")
     return out
 
 

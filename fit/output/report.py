@@ -153,8 +153,15 @@ def _correlation_png(corr: np.ndarray, labels: list[str], path: Path) -> Path:
 
 
 def _mask_png(mask: np.ndarray, path: Path) -> Path:
-    """A mask in [0, 1] as a grey image, one pixel per pixel."""
+    """A mask in [0, 1] as a grey image, or a colour texture (linear RGB) in sRGB, one pixel per
+    texel."""
     mask = np.asarray(mask, dtype=np.float32)
+    if mask.ndim == 3 and mask.shape[-1] == 3:
+        from captures.images import srgb_encode
+
+        with atomic_path(path) as partial:
+            pyplot().imsave(partial, np.clip(srgb_encode(mask), 0, 1), format="png")
+        return path
     mask = mask.mean(axis=-1) if mask.ndim == 3 else mask
     with atomic_path(path) as partial:
         pyplot().imsave(partial, np.clip(mask, 0, 1), cmap="gray", vmin=0, vmax=1, format="png")
@@ -283,10 +290,16 @@ def write_report(
     page.append(_img(png, "correlation matrix", "No correlation matrix (no uncertainty estimate)."))
 
     if masks:
-        page.append("<h2>Fitted masks</h2><div class='masks'>")
-        for i, (key, mask) in enumerate(masks.items()):
-            png = _mask_png(mask, assets / f"mask-{i:02d}-{_slug(key)}.png")
-            page.append(f"<figure>{_img(png, key, '')}<figcaption>{_e(key)}</figcaption></figure>")
+        page.append("<h2>Fitted masks and textures</h2><div class='masks'>")
+        for i, (key, texels) in enumerate(masks.items()):
+            caption, shown = key, np.asarray(texels, np.float32)
+            if shown.ndim == 3 and shown.shape[-1] == 3:  # a colour: its brightest texels white
+                scale = 1.0 / max(float(np.percentile(shown, 99.5)), 1e-6)
+                shown, caption = shown * scale, f"{key} (x {scale:.3g})"
+            png = _mask_png(shown, assets / f"mask-{i:02d}-{_slug(key)}.png")
+            page.append(
+                f"<figure>{_img(png, key, '')}<figcaption>{_e(caption)}</figcaption></figure>"
+            )
         page.append("</div>")
     page.append("</body></html>\n")
     return write_text(out / "report.html", "\n".join(page))

@@ -144,6 +144,17 @@ def _targets(f: Free, params, view: str) -> list[str]:
     return keys
 
 
+def _unfreezable(f: Free) -> bool:
+    """Whether a free parameter keeps its renders from being frozen: any texture. Replayed after
+    a bitmap's texels changed, a frozen pass read stale memory or crashed (Dr.Jit 1.5 / Mitsuba
+    3.9.1, LLVM): a mask's 16x16 texels inside the `fbm` texture gave wrong images (values of
+    1e29) and a reverse pass's segmentation fault within a few steps, with one channel or three,
+    the texels set before the call or inside the recording; a pigment texture directly under
+    the glaze replayed exactly through 12 steps with a perspective `batch` sensor, and crashed
+    in the reverse pass of the DiLiGenT pot's orthographic views (one scene per light)."""
+    return bool(f.shape)
+
+
 def _like(current, values):
     """`values` (numpy) as the Dr.Jit type of `current`."""
     values = np.asarray(values, np.float32)
@@ -299,9 +310,7 @@ class Renderer:
     orthographic cameras, which Mitsuba 3.9 does not declare to the recording, are rebuilt
     inside it (`_rebuild_sensor`); the cup's five thin-lens views of 64x56: an Adam step at 8
     spp 0.69-0.82 s frozen, 1.19 s re-traced. A function whose recording fails runs unfrozen
-    from then on (`_Frozen`). Nothing is frozen when a texture is free (replaying a
-    frozen render after a bitmap's data was replaced crashed: segmentation fault, Dr.Jit 1.5 /
-    Mitsuba 3.9, a 16x16 mask texture)."""
+    from then on (`_Frozen`). Nothing is frozen while a texture is free (`_unfreezable`)."""
 
     def __init__(
         self,
@@ -322,7 +331,7 @@ class Renderer:
             and all(v.lights is None for v in views)
             and len({s[:2] for s in self.shapes}) == 1
         )
-        freeze = freeze and not any(f.shape for f in free)
+        freeze = freeze and not any(_unfreezable(f) for f in free)
         groups = [list(range(len(views)))] if batched else [[i] for i in range(len(views))]
         self.groups = [_Group(capture, g, material, free, freeze) for g in groups]
         self.scenes = [g.scene for g in self.groups]

@@ -5,6 +5,7 @@ loaded on first use)."""
 from __future__ import annotations
 
 import fnmatch
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import jax
@@ -176,6 +177,50 @@ class Problem:
                 name = f"gain.{self.capture.views[view].name}"
                 out[name] = gain.tolist() if gain.size > 1 else float(gain[0])
         return out
+
+    @property
+    def textures(self) -> list[str]:
+        """The free parameters that are textures (texel by texel)."""
+        return [f.key for f in self.free if f.shape]
+
+    def holding_textures(self, u) -> tuple[Problem, Callable, Callable]:
+        """The problem of the scalars (and gains) with every texture held at its value in `u`:
+        (that problem, `take(u)` its coordinates of a full vector, `put(u, v)` the full vector
+        with them replaced). Forward-mode solvers and the uncertainty render one image per
+        coordinate, and none through a bitmap's texels (`forward_mode_refusal`): they move the
+        scalars while the textures, fitted by Adam, are held."""
+        from ..material.textures import cached_texture
+
+        values = self.values(u)
+        kept = [f for f in self.free if not f.shape]
+        if not kept:
+            raise InputError(
+                "every free parameter is a texture: no scalar for gn, lm or bfgs to move; fit "
+                "textures with adam phases only"
+            )
+        files = {
+            f.key: cached_texture(np.asarray(values[f.key], np.float32).reshape(f.shape))
+            for f in self.free
+            if f.shape
+        }
+        material = self.material.with_values(values).with_textures(files)
+        held = Problem(self.capture, material, kept, self.gains, self.loss, self.loss_scale)
+        index, i = [], 0
+        for f in self.free:
+            if not f.shape:
+                index.extend(range(i, i + f.size))
+            i += f.size
+        index = np.asarray(index + list(range(i, i + self.n_gain)), np.int64)
+
+        def take(full):
+            return np.asarray(full, np.float32)[index]
+
+        def put(full, part):
+            out = np.array(full, np.float32)
+            out[index] = np.asarray(part, np.float32)
+            return out
+
+        return held, take, put
 
     def gain_multipliers(self, log_gains, downscale: int = 1):
         """Per-element multipliers of the flattened views from the solver's gain coordinates."""

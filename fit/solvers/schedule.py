@@ -122,24 +122,51 @@ DEFAULT_SCHEDULE = (
 )
 
 
+#: The default schedule with textures free (`[fit.textures]`): Adam moves everything, at half
+#: resolution then at full resolution with its last half averaged (a texel's gradient is one
+#: texel's pixels' noise); then `gn` polishes the scalars with the textures held
+#: (`Problem.holding_textures`: no forward-mode render goes through a bitmap's texels), and the
+#: uncertainty is the scalars' with the textures held.
+TEXTURE_SCHEDULE = (
+    Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
+    Phase(solver="adam", steps=60, spp=16, lr=0.03, average=0.5),
+    Phase(solver="gn", steps=12, spp=64, jacobian_spp=32, refresh=6, average=1.0),
+)
+
+
 #: What the default schedule holds through its first Adam steps when any of it is free.
 MASK_THRESHOLDS = "*.mask.threshold"
 
 
-def default_schedule(free: list[str]) -> tuple[Phase, ...]:
-    """`DEFAULT_SCHEDULE` for these free keys: with a mask threshold free, its Adam phase is
-    split, the first 30 steps holding the thresholds (colours first; `AdamOptions.hold`). On the
-    cup, one seed's glaze threshold otherwise walked out of the noise's range in Adam's first
-    20 steps, where no gradient brings it back (BENCHMARKS, "The main job")."""
+def default_schedule(
+    free: list[str], textures: bool = False, scalars: bool = True
+) -> tuple[Phase, ...]:
+    """`DEFAULT_SCHEDULE` for these free keys (`TEXTURE_SCHEDULE` with `textures` free, its
+    Adam phases alone without `scalars` free: nothing for `gn` to move): with a mask threshold
+    free, its Adam phase is split, the first 30 steps holding the thresholds (colours first;
+    `AdamOptions.hold`). On the cup, one seed's glaze threshold otherwise walked out of the
+    noise's range in Adam's first 20 steps, where no gradient brings it back (BENCHMARKS, "The
+    main job")."""
+    schedule = TEXTURE_SCHEDULE if textures else DEFAULT_SCHEDULE
+    if textures and not scalars:
+        schedule = tuple(p for p in schedule if p.solver == "adam")
     if not any(fnmatch.fnmatchcase(k, MASK_THRESHOLDS) for k in free):
-        return DEFAULT_SCHEDULE
-    adam, *rest = DEFAULT_SCHEDULE
+        return schedule
+    adam, *rest = schedule
     fields = adam.model_dump()  # its options too (extra fields), validated again below
     return (
         Phase(**{**fields, "steps": 30, "hold": (MASK_THRESHOLDS,)}),
         Phase(**{**fields, "steps": adam.steps - 30}),
         *rest,
     )
+
+
+def _same(u):
+    return u
+
+
+def _second(_, u):
+    return u
 
 
 def _phase_result(result: Result) -> dict:
@@ -259,9 +286,15 @@ def run_schedule(
         )
         in_phase = saved if saved is not None and k == first and "step" in saved else None
         began = time.perf_counter()
+        # forward-mode solvers move the scalars with the textures held (Adam fits textures)
+        solved, take, put = (
+            problem.holding_textures(u)
+            if problem.textures and phase.solver != "adam"
+            else (problem, _same, _second)
+        )
         result = SOLVERS[phase.solver]().run(
-            problem,
-            np.asarray(u, np.float32),
+            solved,
+            take(u),
             steps=phase.steps,
             spp=phase.spp,
             seed=seed + k,
@@ -272,6 +305,9 @@ def run_schedule(
             offer=offer,
         )
         result.reports[-1].seconds = time.perf_counter() - began
+        if solved is not problem:
+            result.u = put(u, result.u)
+            result.values = problem.values(result.u)
         if progress:
             progress(k, phase.steps, result.loss)
         history += result.history
@@ -291,10 +327,18 @@ def run_schedule(
             if checkpoint.stop:
                 raise KeyboardInterrupt
     result.steps, result.history, result.phase_ends, result.reports = steps, history, ends, reports
-    if forward_mode_refusal(problem) is None:  # else no sd: std stays None
+    # with textures free, the scalars' sd with the textures held (their curvature alone)
+    last, take = (
+        problem.holding_textures(u)[:2]
+        if problem.textures and any(not f.shape for f in problem.free)
+        else (problem, _same)
+    )
+    if problem.textures and phases[-1].solver == "adam":
+        result.tail_variance = result.tail_gradients = None  # of all coordinates, not the held
+    if forward_mode_refusal(last) is None:  # else no sd: std stays None
         result.std, result.correlation, result.poorly_determined = uncertainty(
-            problem,
-            np.asarray(u),
+            last,
+            take(u),
             uncertainty_spp,
             seed + len(phases),
             extra_variance=result.tail_variance,

@@ -85,7 +85,7 @@ def test_mask_texture_is_recovered_in_reverse_mode(tmp_path):
     other = Renderer(target, start_material, resolve(start_material, ["glaze.roughness"]))
     _, jac = other.jacobian(np.array([0.1], np.float32), 0, 1)
     assert np.isfinite(jac).all() and np.any(jac != 0)
-    with pytest.raises(InputError, match=r"solver gn: glaze.mask.texture is a texture.*adam"):
+    with pytest.raises(InputError, match=r"every free parameter is a texture: no scalar.*adam"):
         run_schedule(problem, start, (Phase(solver="gn", steps=2, spp=1),), seed=0)
 
 
@@ -93,8 +93,9 @@ def test_a_small_texture_fits_to_its_end_without_forward_mode(tmp_path):
     """An 8x8 mask (64 components, within the uncertainty's count) ended every fit with an
     internal error: the uncertainty's forward-mode Jacobian through a bitmap's texels fails in
     Mitsuba 3.9 (`dr.isolate_grad` scope), after all the steps, and the run folder was never
-    written. The fit now ends without an sd for it; `gn` and `lm` refuse it by name, and a fit
-    config whose phases (the default schedule's) hold one is refused before any render."""
+    written. The fit now ends without an sd for it; `gn` and `lm`, with no scalar to move
+    while the texture is held, refuse by name; the default schedule of a texture alone is its
+    Adam phases, and phases of `gn` a config gives are refused before any render."""
     from fit.commands.fit import prepare
     from fit.commands.synth import synthesize
     from fit.config import load_fit_config
@@ -108,7 +109,7 @@ def test_a_small_texture_fits_to_its_end_without_forward_mode(tmp_path):
     result = run_schedule(problem, start, (Phase(solver="adam", steps=2, spp=1),), seed=0)
     assert np.isfinite(result.values["glaze.mask.texture"]).all() and result.std is None
     for solver in ("gn", "lm"):
-        with pytest.raises(InputError, match=rf"solver {solver}: glaze.mask.texture is a tex"):
+        with pytest.raises(InputError, match=r"every free parameter is a texture: no scalar"):
             run_schedule(problem, start, (Phase(solver=solver, steps=1, spp=1),), seed=0)
 
     synthesize(target.scene, start_material, tmp_path / "cap", spp=1)
@@ -116,10 +117,16 @@ def test_a_small_texture_fits_to_its_end_without_forward_mode(tmp_path):
         'capture = "cap"\nmaterial = "material.toml"\n[fit]\nfree = ["glaze.mask.texture"]\n'
     )
     save_preset(start_material, tmp_path / "material.toml")
+    cfg = load_fit_config(tmp_path / "fit.toml")
+    assert [p.solver for p in cfg.phases] == ["adam", "adam"]  # the texture schedule's Adam
+    prepare(cfg, trace=False)
+    (tmp_path / "fit.toml").write_text(
+        (tmp_path / "fit.toml").read_text() + '[[fit.phases]]\nsolver = "gn"\nsteps = 2\nspp = 4\n'
+    )
     with pytest.raises(InputError) as err:
         prepare(load_fit_config(tmp_path / "fit.toml"), trace=False)
     message = str(err.value)
-    assert "fit.phases[1].solver = 'gn' (the default schedule): glaze.mask.texture is a" in message
+    assert "fit.phases[0].solver = 'gn': every free parameter is a texture" in message
 
 
 def test_two_masks_sharing_a_file_keep_their_own_fitted_texels(tmp_path):

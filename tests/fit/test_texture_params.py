@@ -1,0 +1,165 @@
+"""Colours and masks fitted as textures at a stated resolution (`[fit.textures]`): their start,
+their refusals, and a fit that moves the texels with Adam and then polishes the scalars with
+`gn`, the texels held."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from captures.capture import Capture, View
+from captures.errors import InputError
+from captures.images import read_image, write_image
+from fit.config import load_fit_config, load_render_config
+from fit.material import build_material, resolve
+from fit.material.textures import start_texels, with_free_textures
+from fit.render import Renderer, load_scene, render, scene_dict
+from fit.solvers import Phase, Problem, run_schedule
+from fit.solvers.schedule import TEXTURE_SCHEDULE
+
+ROOT = Path(__file__).resolve().parents[2]
+GLAZE = 'type = "glaze"\npigment = [0.1, 0.22, 0.55]\nroughness = 0.1\nior = 1.5\n'
+STACK = """type = "layered"
+[[material.layers]]
+name = "clay"
+type = "oren_nayar"
+reflectance = "clay.exr"
+[[material.layers]]
+name = "glaze"
+type = "glaze"
+[material.layers.mask]
+threshold = 0.3
+"""
+
+
+def config(tmp_path: Path, material: str, fit: str) -> Path:
+    (tmp_path / "cap").mkdir(exist_ok=True)
+    path = tmp_path / "fit.toml"
+    path.write_text(f'capture = "cap"\n[material]\n{material}\n[fit]\n{fit}\n')
+    return path
+
+
+def test_a_constant_colour_starts_as_a_texture_of_its_value(tmp_path):
+    path = config(
+        tmp_path,
+        GLAZE,
+        'free = ["glaze.pigment", "glaze.roughness"]\n[fit.textures]\n"glaze.pigment" = [8, 4]',
+    )
+    cfg = load_fit_config(path)
+    file = cfg.material.params["glaze.pigment"].texture
+    assert file is not None and not file.is_relative_to(tmp_path)  # never beside the user's
+    texels = read_image(file)
+    assert texels.shape == (4, 8, 3)
+    np.testing.assert_allclose(texels, np.broadcast_to([0.1, 0.22, 0.55], (4, 8, 3)), rtol=1e-6)
+    free = resolve(cfg.material, cfg.free)
+    assert [f.shape for f in free] == [(4, 8, 3), ()]
+    assert tuple(cfg.phases) == TEXTURE_SCHEDULE
+    assert cfg.phases[-1].solver == "gn"  # the scalars' polish, the texels held
+
+
+def test_a_texture_file_is_resampled_and_a_mask_without_one_starts_at_ones(tmp_path):
+    gradient = np.linspace(0.2, 0.8, 16, dtype=np.float32)[None, :, None] * np.ones((8, 16, 3))
+    write_image(tmp_path / "clay.exr", gradient.astype(np.float32))
+    material = build_material(
+        {
+            "type": "layered",
+            "layers": [
+                {"name": "clay", "type": "oren_nayar", "reflectance": "clay.exr"},
+                {"name": "glaze", "type": "glaze", "mask": {"threshold": 0.3}},
+            ],
+        },
+        tmp_path / "m.toml",
+    )
+    half = start_texels(material, "clay.reflectance", (8, 4))
+    assert half.shape == (4, 8, 3)
+    np.testing.assert_allclose(half[0, :, 0], gradient[0, ::2, 0] + 0.02, atol=0.011)
+    assert np.all(np.diff(half[0, :, 0]) > 0)  # the ramp kept, area-averaged
+    ones = start_texels(material, "glaze.mask.texture", (4, 2))
+    assert ones.shape == (2, 4, 1) and np.all(ones == 1.0)
+    textured = with_free_textures(material, {"glaze.mask.texture": (4, 2)})
+    assert textured.params["glaze.mask.texture"].texture is not None
+    assert textured.params["glaze.mask.threshold"].value == pytest.approx(0.3)
+
+
+@pytest.mark.parametrize(
+    ("fit", "said"),
+    [
+        (
+            'free = ["glaze.roughness"]\n[fit.textures]\n"glaze.pigment" = [4, 4]',
+            "fit.textures.glaze.pigment: is not in fit.free; add 'glaze.pigment' to it",
+        ),
+        (
+            'free = ["glaze.roughness"]\n[fit.textures]\n"glaze.roughness" = [4, 4]',
+            "fit.textures.glaze.roughness: only colours and mask textures can be fitted as "
+            "textures (here: glaze.pigment)",
+        ),
+        (
+            'free = ["glaze.pigment"]\n[fit.textures]\n"glaze.pigment" = [2048, 1024]',
+            "2048 x 1024 texels is more than 1048576; give fewer",
+        ),
+        ('free = ["glaze.pigment"]\n[fit.textures]\n"glaze.pigment" = [0, 4]', "glaze.pigment"),
+        ('free = ["glaze.pigment"]\n[fit.textures]\n"glaze.pigment" = [4]', "glaze.pigment"),
+    ],
+)
+def test_bad_textures_are_refused_naming_the_key(tmp_path, fit, said):
+    with pytest.raises(InputError) as err:
+        load_fit_config(config(tmp_path, GLAZE, fit))
+    assert str(tmp_path / "fit.toml") in str(err.value)
+    assert said in str(err.value)
+
+
+def sphere(width: int = 32, height: int = 24) -> tuple[Capture, dict]:
+    """The glazed sphere's first view, small, rendered at its truth."""
+    cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
+    camera = dataclasses.replace(cfg.scene.cameras[0], width=width, height=height)
+    scene = dataclasses.replace(cfg.scene, cameras=(camera,))
+    image = render(load_scene(scene_dict(scene, cfg.material, 0, 256)), 1024, seed=5)
+    view = View("v", image, np.ones((height, width), np.float32), camera)
+    return Capture(scene, [view]), cfg.material.values()
+
+
+def test_a_constant_texture_renders_as_its_constant(tmp_path):
+    capture, _ = sphere()
+    cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
+    textured = with_free_textures(cfg.material, {"glaze.pigment": (8, 4)})
+    plain = Renderer(capture, cfg.material, []).render(np.zeros(0, np.float32), 3, 16)
+    texel = Renderer(capture, textured, []).render(np.zeros(0, np.float32), 3, 16)
+    np.testing.assert_allclose(texel, plain, atol=1e-5)
+
+
+def test_adam_moves_the_texels_then_gn_the_scalars_with_the_texels_held():
+    """From a grey pigment texture and alpha 0.2: the texels the camera sees come out near the
+    truth's pigment, `gn` then moves only the scalars (the texels equal the Adam phase's), and
+    the scalars get an sd (their curvature with the texels held), the texture none."""
+    capture, truth = sphere()
+    cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
+    start = cfg.material.with_values({"glaze.pigment": [0.5, 0.5, 0.5], "glaze.roughness": 0.2})
+    material = with_free_textures(start, {"glaze.pigment": (4, 4)})
+    free = resolve(material, ["glaze.pigment", "glaze.roughness"])
+    problem = Problem(capture, material, free)
+    values = {f.key: f.start for f in free}
+    adam = Phase(solver="adam", steps=60, spp=8, lr=0.1, average=0.5)
+    gn = Phase(solver="gn", steps=4, spp=16, jacobian_spp=16)
+    alone = run_schedule(problem, values, (adam,), seed=1)
+    both = run_schedule(problem, values, (adam, gn), seed=1, uncertainty_spp=16)
+    texels = np.asarray(both.values["glaze.pigment"]).reshape(4, 4, 3)
+    held = np.asarray(alone.values["glaze.pigment"]).reshape(4, 4, 3)
+    np.testing.assert_allclose(texels, held, rtol=1e-6)  # float32 coordinates, unmoved
+    # the sphere's front half, u in (0.25, 0.75) around its equator, faces this camera
+    seen = texels[1:3, 1:3].reshape(-1, 3)
+    np.testing.assert_allclose(np.median(seen, 0), truth["glaze.pigment"], atol=0.05)
+    assert both.values["glaze.roughness"] == pytest.approx(truth["glaze.roughness"], rel=0.35)
+    assert both.std is not None and set(both.std) == {"glaze.roughness"}
+    assert 0 < both.std["glaze.roughness"] < 0.05
+
+
+def test_a_phase_other_than_adam_needs_a_scalar_beside_the_textures():
+    capture, _ = sphere(16, 12)
+    cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
+    material = with_free_textures(cfg.material, {"glaze.pigment": (2, 2)})
+    problem = Problem(capture, material, resolve(material, ["glaze.pigment"]))
+    with pytest.raises(InputError, match="every free parameter is a texture: no scalar"):
+        run_schedule(problem, {"glaze.pigment": [0.5] * 12}, (Phase(solver="gn", steps=1, spp=1),))
