@@ -88,6 +88,8 @@ def write_run(
         summary["starts"] = starts
     for key, texels in textures.items():
         write_image(out / f"{key}.exr", texels)
+    for key, sd in (result.texture_std or {}).items():  # each texel's sd, beside its texture
+        write_image(out / f"{key}.sd.exr", sd)
     # the fitted textures' files: the report's masks are baked from them (it showed the start's)
     fitted_material = cfg.material.with_values(result.values).with_textures(
         {key: out / f"{key}.exr" for key in textures}
@@ -102,9 +104,12 @@ def write_run(
             provenance(cfg.capture, cfg.path, result.loss, std or None),
             textures,
         )
-    shown = masks(fitted_material) | {
-        k: t if t.shape[-1] == 3 else t[..., 0] for k, t in textures.items()
-    }
+    shown = masks(fitted_material)
+    for key, texels in textures.items():
+        shown[key] = texels if texels.shape[-1] == 3 else texels[..., 0]
+        if key in (result.texture_std or {}):
+            sd = result.texture_std[key]
+            shown[f"{key} sd"] = sd if sd.shape[-1] == 3 else sd[..., 0]
     title = f"{cfg.path.name}{' (interrupted)' if interrupted else ''}"
     write_report(out, summary, panels, shown, title)
     # the summary last: beside no checkpoint, it marks a finished run folder (batches skip those)
@@ -119,8 +124,9 @@ def _outputs(out: Path) -> dict[Path, int]:
     """The images an earlier fit wrote into this run folder that are there now, with their
     inodes: the PNGs its `report.html` shows, the texture files its `preset.toml` names as the
     preset writes them (`preset.<key>.<ext>`), and fitted textures named by a parameter of its
-    `summary.json` (`<key>.exr`). Nothing else a user keeps there (a PNG of their own in
-    `report/`, a texture a hand-edited preset names: both were deleted by `--force`)."""
+    `summary.json` (`<key>.exr`, its sd `<key>.sd.exr`). Nothing else a user keeps there (a
+    PNG of their own in `report/`, a texture a hand-edited preset names: both were deleted by
+    `--force`)."""
     try:
         keys = set(json.loads((out / "summary.json").read_text())["values"])
     except (OSError, ValueError, KeyError, TypeError):
@@ -136,7 +142,7 @@ def _outputs(out: Path) -> dict[Path, int]:
     shown = {html.unescape(name) for name in re.findall(r"src='report/([^'/]+\.png)'", page)}
     paths = [out / "report" / name for name in sorted(shown)]
     paths += [out / name for name in _images_named(preset) if name.startswith("preset.")]
-    paths += [p for p in out.glob("*.exr") if p.stem in keys]
+    paths += [p for p in out.glob("*.exr") if p.stem in keys or p.stem.removesuffix(".sd") in keys]
     return {p: p.stat().st_ino for p in paths if p.is_file()}
 
 
@@ -237,6 +243,16 @@ def _summary(cfg, capture, held, start, result, wall, panels, interrupted, free)
         "error": errors,
         "error_over_std": z,
         "views": [{"name": p.name, "rmse": p.rmse, "held_out": p.held_out} for p in panels],
+        "textures": {
+            key: {
+                "file": f"{key}.exr",
+                "sd_file": f"{key}.sd.exr",
+                "median_sd": float(np.median(sd)),
+                "smoothness": (result.texture_weight or {}).get(key),
+                "seen": (result.texture_seen or {}).get(key),
+            }
+            for key, sd in (result.texture_std or {}).items()
+        },
         "loss": result.loss,
         "history": result.history,
         "phase_ends": result.phase_ends,

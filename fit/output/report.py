@@ -293,7 +293,8 @@ def write_report(
         page.append("<h2>Fitted masks and textures</h2><div class='masks'>")
         for i, (key, texels) in enumerate(masks.items()):
             caption, shown = key, np.asarray(texels, np.float32)
-            if shown.ndim == 3 and shown.shape[-1] == 3:  # a colour: its brightest texels white
+            if key.endswith(" sd") or (shown.ndim == 3 and shown.shape[-1] == 3):
+                # a colour or an sd: its brightest texels white
                 scale = 1.0 / max(float(np.percentile(shown, 99.5)), 1e-6)
                 shown, caption = shown * scale, f"{key} (x {scale:.3g})"
             png = _mask_png(shown, assets / f"mask-{i:02d}-{_slug(key)}.png")

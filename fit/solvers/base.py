@@ -70,6 +70,11 @@ class Result:
     #: step (solvers whose steps follow the loss's own fresh-seed gradient: `gn`); from them the
     #: uncertainty estimates the averaged answer's Monte Carlo error (see `uncertainty`).
     tail_gradients: tuple[np.ndarray, np.ndarray] | None = None
+    #: Free textures after their smoothing (`fit.solvers.textures`): each texel's sd (the
+    #: texture's shape), the prior weight chosen and the share of texels the photos see.
+    texture_std: dict | None = None
+    texture_weight: dict | None = None
+    texture_seen: dict | None = None
 
 
 def tail_variance(tail: list) -> np.ndarray | None:

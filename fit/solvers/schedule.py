@@ -27,6 +27,7 @@ from .base import Options, PhaseReport, Result
 from .checkpoint import Checkpoint
 from .problem import Problem
 from .registry import SOLVERS
+from .textures import smooth_textures
 from .uncertainty import forward_mode_refusal, uncertainty
 
 
@@ -132,6 +133,11 @@ TEXTURE_SCHEDULE = (
     Phase(solver="adam", steps=60, spp=16, lr=0.03, average=0.5),
     Phase(solver="gn", steps=12, spp=64, jacobian_spp=32, refresh=6, average=1.0),
 )
+
+
+#: Samples per pixel of the renders that smooth the textures after Adam
+#: (`fit.solvers.textures`).
+TEXTURE_SPP = 16
 
 
 #: What the default schedule holds through its first Adam steps when any of it is free.
@@ -271,8 +277,18 @@ def run_schedule(
     result = Result(problem.values(u), u, float("nan"), 0)
     if saved is not None and first == len(phases):  # stopped after the last phase's end
         _restore_phase_result(result, saved, history)
+    # colour textures are smoothed once, after the last Adam phase (before `gn` polishes the
+    # scalars); a fit resumed past that point reports no texel sd
+    adams = [k for k, p in enumerate(phases) if p.solver == "adam"]
+    colours = any(f.shape and f.spec.kind == "rgb" for f in problem.free)
+    smooth_before = adams[-1] + 1 if colours and adams else -1
+    smoothed = None
     for k in range(first, len(phases)):
         phase = phases[k]
+        in_phase = saved if saved is not None and k == first and "step" in saved else None
+        if k == smooth_before and in_phase is None:  # resumed inside it: u_phase is smoothed
+            smoothed = smooth_textures(problem, u, TEXTURE_SPP, seed + smooth_before)
+            u = smoothed.u
         report = (lambda i, value, k=k: progress(k, i, value)) if progress else None
         done = {
             "phase": k,
@@ -284,7 +300,6 @@ def run_schedule(
         offer = (
             (lambda state, done=done: checkpoint.offer({**done, **state})) if checkpoint else None
         )
-        in_phase = saved if saved is not None and k == first and "step" in saved else None
         began = time.perf_counter()
         # forward-mode solvers move the scalars with the textures held (Adam fits textures)
         solved, take, put = (
@@ -326,6 +341,13 @@ def run_schedule(
             checkpoint.flush()
             if checkpoint.stop:
                 raise KeyboardInterrupt
+    if smooth_before == len(phases):  # the last phase is Adam's: smoothed at the end
+        smoothed = smooth_textures(problem, u, TEXTURE_SPP, seed + smooth_before)
+        u = smoothed.u
+        result.u, result.values = u, problem.values(u)
+    if smoothed is not None:
+        result.texture_std, result.texture_weight = smoothed.std, smoothed.weight
+        result.texture_seen = smoothed.seen
     result.steps, result.history, result.phase_ends, result.reports = steps, history, ends, reports
     # with textures free, the scalars' sd with the textures held (their curvature alone)
     last, take = (

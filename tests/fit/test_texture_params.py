@@ -148,12 +148,21 @@ def test_adam_moves_the_texels_then_gn_the_scalars_with_the_texels_held():
     texels = np.asarray(both.values["glaze.pigment"]).reshape(4, 4, 3)
     held = np.asarray(alone.values["glaze.pigment"]).reshape(4, 4, 3)
     np.testing.assert_allclose(texels, held, rtol=1e-6)  # float32 coordinates, unmoved
-    # the sphere's front half, u in (0.25, 0.75) around its equator, faces this camera
-    seen = texels[1:3, 1:3].reshape(-1, 3)
-    np.testing.assert_allclose(np.median(seen, 0), truth["glaze.pigment"], atol=0.05)
     assert both.values["glaze.roughness"] == pytest.approx(truth["glaze.roughness"], rel=0.35)
     assert both.std is not None and set(both.std) == {"glaze.roughness"}
     assert 0 < both.std["glaze.roughness"] < 0.05
+    # each texel's sd: small where the camera looks, the bounds' uniform sd where it never does
+    sd = both.texture_std["glaze.pigment"]
+    assert sd.shape == (4, 4, 3) and np.all(np.isfinite(sd)) and np.all(sd > 0)
+    assert np.all(sd <= 1 / np.sqrt(12) + 1e-6)
+    assert 0.1 <= both.texture_seen["glaze.pigment"] <= 1
+    # the texels facing the camera: near the truth, mostly within 3 of their sd (measured: 17
+    # of 18 channels, the worst 4.1 sd; the texels were fitted at Adam's alpha, which gn moved)
+    seen = np.all(sd < 0.1, axis=-1)
+    assert seen.sum() >= 2
+    error = np.abs(texels[seen] - truth["glaze.pigment"])
+    assert np.all(error < 0.08), error
+    assert np.mean(error < 3 * sd[seen]) >= 0.8, (error, sd[seen])
 
 
 def test_a_phase_other_than_adam_needs_a_scalar_beside_the_textures():
@@ -163,3 +172,39 @@ def test_a_phase_other_than_adam_needs_a_scalar_beside_the_textures():
     problem = Problem(capture, material, resolve(material, ["glaze.pigment"]))
     with pytest.raises(InputError, match="every free parameter is a texture: no scalar"):
         run_schedule(problem, {"glaze.pigment": [0.5] * 12}, (Phase(solver="gn", steps=1, spp=1),))
+
+
+def test_smoothing_lowers_a_noisy_textures_error_and_fills_what_no_pixel_sees():
+    """A smooth 32x24 ramp seen with noise of known information h (every fourth column unseen,
+    h = 0): the smoothed texels are closer to the truth than the noisy ones, the unseen ones
+    near their neighbours' truth; the weight from the data (the predictive risk)."""
+    from fit.solvers.textures import laplacian, smooth
+
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[0:24, 0:32] / 32.0
+    truth = 0.3 + 0.4 * xx + 0.1 * np.sin(3 * yy)
+    h = np.full(truth.shape, 400.0)  # noise sd 1 / sqrt(h) = 0.05
+    h[:, ::4] = 0.0
+    noisy = truth + rng.normal(0, 0.05, truth.shape)
+    noisy[h == 0] = 0.5  # what an unseen texel keeps: its start
+    smoothed, weight, information = smooth(noisy, h, 1.0)
+    seen = h > 0
+    before = np.sqrt(np.mean((noisy[seen] - truth[seen]) ** 2))
+    after = np.sqrt(np.mean((smoothed[seen] - truth[seen]) ** 2))
+    assert after < 0.5 * before
+    assert np.sqrt(np.mean((smoothed[~seen] - truth[~seen]) ** 2)) < 0.03
+    assert 0 < weight < np.inf and np.all(information > 0)
+    lap = laplacian(3, 4).toarray()
+    assert lap.shape == (12, 12) and np.allclose(lap.sum(1), 0) and lap[5, 5] == 4  # interior
+
+
+def test_smoothing_keeps_a_texture_the_data_pin_down():
+    """Texels measured far more precisely than their differences: the smoothing leaves them."""
+    from fit.solvers.textures import smooth
+
+    rng = np.random.default_rng(4)
+    truth = rng.uniform(0.1, 0.9, (16, 16))  # no smoothness at all
+    h = np.full(truth.shape, 1e6)  # noise sd 0.001
+    noisy = truth + rng.normal(0, 1e-3, truth.shape)
+    smoothed, _, _ = smooth(noisy, h, 1.0)
+    assert np.abs(smoothed - truth).max() < 0.02
