@@ -302,7 +302,8 @@ def batch(
 @command
 def export(
     preset: Annotated[
-        Path, typer.Argument(help="Preset (TOML) to export, e.g. a run's preset.toml.")
+        Path,
+        typer.Argument(help="Preset (TOML) to export, or a run folder (its preset.toml)."),
     ],
     to: Annotated[str, typer.Option("--to", help="Target: mitsuba, materialx or usd.")],
     out: Annotated[
@@ -320,12 +321,26 @@ def export(
             min=1, max=8192, help="Texels per side of baked images (8192: about 0.8 GB a colour)."
         ),
     ] = 1024,
+    with_scene: Annotated[
+        bool,
+        typer.Option(
+            "--with-scene",
+            help="USD: the object's stage too (mesh, material, cameras, lights: scene.usda).",
+        ),
+    ] = False,
+    capture: Annotated[
+        Path | None,
+        typer.Option(
+            help="The capture of --with-scene (default: the one the preset's provenance names)."
+        ),
+    ] = None,
     variant: Variant = None,
 ) -> None:
-    """Export a preset to Mitsuba XML, MaterialX (OpenPBR) or USD (UsdPreviewSurface); what each
-    target holds exactly, approximates or loses: docs/exports.md."""
+    """Export a preset to Mitsuba XML, MaterialX (OpenPBR) or USD (UsdPreviewSurface), with
+    --with-scene the object's USD stage too; what each target holds exactly, approximates or
+    loses: docs/exports.md."""
     from .commands.export import export as run
 
     with ui.progress() as bar:
-        path = run(preset, to, out, portable, force, size, variant, bar)
+        path = run(preset, to, out, portable, force, size, variant, bar, with_scene, capture)
     ui.wrote(path)

@@ -1,5 +1,6 @@
 """The USD export where artists open it: Blender (bpy, Cycles) renders the exported material in a
-peer scene, against layerfit's own render of the same preset in the same scene."""
+peer scene, and the `--with-scene` stage alone, against layerfit's own render of the same preset
+in the same scene."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from fit.render import coverage_dict, load_scene, render, scene_dict
 ROOT = Path(__file__).resolve().parents[2]
 BLENDER = ROOT / ".venv-blender" / "bin" / "python"
 SCRIPT = Path(__file__).with_name("blender_render.py")
+STAGE_SCRIPT = Path(__file__).with_name("blender_stage_render.py")
 #: Samples per pixel of both renders: at 256 the brightest 1 % of a Lambertian sphere differed
 #: by 9 % (their noise), at 2048 by 2.5 % (mean within 0.05 %, relative RMSE 0.03).
 SPP = 2048
@@ -108,3 +110,65 @@ def test_the_usd_export_renders_in_blender_as_layerfit_does(name, blender, share
         assert abs(got["highlight"] - 1) <= 0.05, (view, got)
         if name == "sphere":
             assert got["rmse"] <= 0.05, (view, got)
+
+
+#: Samples per pixel of both renders of the stage test: the Lambertian torus's five views at
+#: 4096 came within 0.06 % in mean, 1.5-1.9 % in the brightest 1 %, relative RMSE 0.016-0.019
+#: (at 256: the brightest 1 % 9-12 % apart, their noise).
+STAGE_SPP = 4096
+#: A Lambertian: its mapping to UsdPreviewSurface is exact (sigma 0 is the preview surface's
+#: diffuse, tests/fit/test_export.py), so what differs is the scene the stage holds.
+LAMBERTIAN = {"type": "oren_nayar", "reflectance": [0.55, 0.33, 0.12], "sigma": 0.0}
+
+
+def stage_capture(name: str, shared_data: Path, folder: Path) -> tuple[Path, tuple[int, ...]]:
+    """(capture, views) of a stage case: the peer torus (an OBJ, two rectangles, a world) seen
+    from its first view; the analytic sphere (a UV sphere in the stage) lit by a rectangle and
+    a point light, seen through a calibrated pinhole and a thin lens."""
+    if name == "torus":
+        return shared_data / "peer-cycles" / "torus-amber" / "scene.json", (0,)
+    from test_usd_scene import LIGHTS, make_capture
+
+    return make_capture(folder / "capture", lights=LIGHTS[:2]), (0, 1)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["torus", "sphere"])
+def test_the_scene_stage_renders_in_blender_as_layerfit_does(name, blender, shared_data, tmp_path):
+    """`export --with-scene`'s stage alone in Blender (mesh, material, camera, lights, world:
+    nothing built from the capture; the resolution from its render settings) against layerfit's
+    render of the same view: mean within 3 %, the brightest 1 % within 5 %, relative RMSE
+    <= 0.05. Left out, measured (docs/exports.md): a distant light (Blender's importer reads it
+    at 4 x its intensity) and an orthographic camera (its aperture read as metres, 10 x wide)."""
+    from pxr import Usd, UsdRender
+
+    capture_path, views = stage_capture(name, shared_data, tmp_path)
+    material = build_material(LAMBERTIAN)
+    save_preset(material, tmp_path / "preset.toml")
+    usda = export(
+        tmp_path / "preset.toml",
+        "usd",
+        tmp_path / "usd",
+        size=8,
+        with_scene=True,
+        capture=capture_path,
+    )
+    stage = Usd.Stage.Open(str(usda))
+    capture = open_capture(capture_path)
+    for view in views:
+        camera = capture.views[view].name
+        settings = UsdRender.Settings(stage.GetPrimAtPath(f"/Render/{camera}"))
+        width, height = settings.GetResolutionAttr().Get()
+        scene = capture.scene_of(view)
+        native = render(load_scene(scene_dict(scene, material, 0, STAGE_SPP)), STAGE_SPP, seed=5)
+        coverage = render(load_scene(coverage_dict(scene, 0, 16)), 16)[..., 0]
+        out = tmp_path / f"blender{view}.exr"
+        args = [BLENDER, STAGE_SCRIPT, usda, camera, width, height, out, STAGE_SPP]
+        done = subprocess.run(
+            [str(a) for a in args], capture_output=True, text=True, check=False, timeout=900
+        )
+        assert done.returncode == 0 and out.is_file(), done.stderr[-3000:]
+        got = compare(read_image(out)[..., :3], native, coverage > 0.99)
+        assert abs(got["mean"] - 1) <= 0.03, (view, got)
+        assert abs(got["highlight"] - 1) <= 0.05, (view, got)
+        assert got["rmse"] <= 0.05, (view, got)
