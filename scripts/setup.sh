@@ -7,18 +7,22 @@
 # `--with-blender` (scripts/test.sh --slow) also makes .venv-blender, Blender as a Python module
 # (bpy, scripts/blender-requirements.txt) for the test that renders exports in Blender: it needs
 # Python 3.11 and NumPy < 2, so it has a venv of its own; where it cannot be made, that test skips.
+# `--with-xvfb` (scripts/test.sh --slow) installs Xvfb and Mesa's software OpenGL for the test that
+# renders the MaterialX export with MaterialX's GLSL renderer; without them that test skips.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 with_chromium=${LAYERFIT_CHROMIUM:-0}
 with_tests=0
 with_blender=0
+with_xvfb=0
 for arg in "$@"; do
   case "$arg" in
     --with-chromium) with_chromium=1 ;;
     --with-tests) with_tests=1 ;;
     --with-blender) with_blender=1 ;;
-    *) echo "setup: unknown option $arg (known: --with-tests, --with-chromium, --with-blender)" >&2; exit 2 ;;
+    --with-xvfb) with_xvfb=1 ;;
+    *) echo "setup: unknown option $arg (known: --with-tests, --with-chromium, --with-blender, --with-xvfb)" >&2; exit 2 ;;
   esac
 done
 
@@ -53,6 +57,13 @@ if [ "$with_chromium" = 1 ] && [ ! -x /usr/bin/chromium ]; then  # optional, exc
       "" | 0 | [Ff]alse) echo "setup: no /usr/bin/chromium; the HTML report test will be skipped" >&2 ;;
       *) echo "setup: CI needs /usr/bin/chromium (the HTML report test); install chromium" >&2; exit 1 ;;
     esac
+  fi
+fi
+
+if [ "$with_xvfb" = 1 ] && ! command -v xvfb-run >/dev/null; then  # best effort: the test skips
+  echo "setup: installing Xvfb and Mesa (MaterialX's GLSL renderer needs an X display)"
+  if ! { command -v apt-get >/dev/null && (apt_install xvfb xauth libgl1-mesa-dri); }; then
+    echo "setup: no Xvfb; the MaterialX render test will be skipped" >&2
   fi
 fi
 

@@ -5,7 +5,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 if [ "${1:-}" = "--slow" ]; then
   shift
-  bash scripts/setup.sh --with-tests --with-chromium --with-blender
+  bash scripts/setup.sh --with-tests --with-chromium --with-blender --with-xvfb
   exec .venv/bin/python -m pytest -m slow "$@"
 fi
 bash scripts/setup.sh --with-tests --with-chromium

@@ -6,10 +6,10 @@ noise-free, on the lobes themselves (`python -m fit.export.mapping` fits them ag
 tables with their residuals):
 
 - **Beckmann -> GGX** (`ggx_roughness`): for a Beckmann alpha `a` with Cook-Torrance shadowing,
-  the GGX roughness `r` (alpha_GGX = r^2, height-correlated Smith shadowing: OpenPBR, Mitsuba's
-  `principled`, UsdPreviewSurface) whose microfacet lobe `D G / (4 n.v)` (`f cos theta_o`) is
-  nearest in relative L2 over the outgoing hemisphere, root-mean-square over views at 0-75
-  degrees from the normal. The Fresnel factors differ by model (the glaze's `paper` coupling
+  the GGX roughness `r` (alpha_GGX = r^2, height-correlated Smith shadowing: OpenPBR,
+  UsdPreviewSurface) whose microfacet lobe `D G / (4 n.v)` (`f cos theta_o`) is nearest in
+  relative L2 over the outgoing hemisphere, root-mean-square over views at 0-75 degrees from the
+  normal. The Fresnel factors differ by model (the glaze's `paper` coupling
   takes F at n.v, the others at v.h) and no roughness can absorb that: `main` also reports the
   residual with them, at ior 1.5.
 - **Oren-Nayar -> EON** (`eon_roughness`): for a sigma (radians), the `base_diffuse_roughness`
@@ -18,6 +18,8 @@ tables with their residuals):
   0.5, views 0-75 degrees. The qualitative model loses energy as sigma grows (A < 1), EON does
   not: the factor gives the energy back. `lambert_scale` is the same fit for a Lambertian
   (Mitsuba's `diffuse`, UsdPreviewSurface), which has no roughness.
+- **The glaze's diffuse albedo** (`glaze_diffuse_albedo`, closed form): its pigment's white-sky
+  albedo through the coat, which portable Mitsuba's `roughplastic` is scaled to.
 
 `GGX_TABLE` and `EON_TABLE` hold the fitted points with the relative residual left at each; the
 maps interpolate between them (in log alpha for Beckmann).
@@ -304,6 +306,22 @@ def as_lambert(colour, sigma: float, diffuse: str = "qualitative"):
     if diffuse == "eon":
         return colour * eon_lambert_factor(colour, sigma)
     return colour * lambert_scale(sigma)
+
+
+def glaze_diffuse_albedo(ior: float, fresnel: str = "schlick", coupling: str = "paper") -> float:
+    """The hemispherical (white-sky) albedo of a glaze's diffuse part per unit of a Lambertian
+    pigment: the pigment seen through the coat once, `2 int (1 - F(mu)) mu dmu` (the `paper`
+    coupling weighs it by 1 - F(n.v)), or twice, its square (`reciprocal`: (1 - F(n.l))
+    (1 - F(n.v))); F Schlick's or the exact one, as the glaze's `fresnel` option."""
+    nodes, weights = np.polynomial.legendre.leggauss(64)
+    mu = 0.5 * (nodes + 1.0)
+    if fresnel == "schlick":
+        f0 = ((ior - 1.0) / (ior + 1.0)) ** 2
+        reflected = f0 + (1.0 - f0) * (1.0 - mu) ** 5
+    else:
+        reflected = _fresnel(mu, ior)
+    once = float(np.sum(0.5 * weights * 2.0 * mu * (1.0 - reflected)))
+    return once if coupling == "paper" else once**2
 
 
 def as_eon(sigma: float, diffuse: str = "qualitative") -> tuple[float, float]:

@@ -9,12 +9,13 @@ Per layer (values from `mapping`):
   go over as they are;
 - the glaze -> the specular layer: `specular_ior` = ior, `specular_roughness` = the GGX r whose
   lobe is nearest its Beckmann alpha (alpha_GGX = r^2); an Oren-Nayar layer has
-  `specular_weight` 0. The glaze is a dielectric directly over its pigment, which is OpenPBR's
-  dielectric base (specular over diffuse). The coat slot would darken the base by its internal
-  reflections, `(1 - K) / (1 - E_base K)` with K = 1 - (1 - F0) / ior^2 (`coat_darkening`):
-  at ior 1.5 the cup's pigment (0.06, 0.2, 0.42) would keep 0.44, 0.48, 0.56 of its value where
-  the glaze keeps 0.96 (1 - F at normal incidence); with the darkening off and the specular
-  off, a coat is the same GGX dielectric lobe. So the specular slot matches better;
+  `specular_weight` 0 (and `specular_roughness` `NO_SPECULAR_ROUGHNESS`). The glaze is a
+  dielectric directly over its pigment, which is OpenPBR's dielectric base (specular over
+  diffuse). The coat slot would darken the base by its internal reflections,
+  `(1 - K) / (1 - E_base K)` with K = 1 - (1 - F0) / ior^2 (`coat_darkening`): at ior 1.5 the
+  cup's pigment (0.06, 0.2, 0.42) would keep 0.44, 0.48, 0.56 of its value where the glaze keeps
+  0.96 (1 - F at normal incidence); with the darkening off and the specular off, a coat is the
+  same GGX dielectric lobe. So the specular slot matches better;
 - layers bottom to top: `mix(fg = layer k, bg = the stack below, mix = mask k)`, each mask an
   `image` node reading the baked texture x fbm (linear EXR), which gives every layer its share
   `w_k = m_k prod_{j>k} (1 - m_j)`, as the native stack.
@@ -35,6 +36,12 @@ from .mapping import as_eon, ggx_roughness
 
 #: The file each export writes in its folder.
 FILE = "material.mtlx"
+#: `specular_roughness` of a layer without a specular lobe (`specular_weight` 0, so ior 1: no
+#: interface). Exact renderers ignore it; MaterialX's GLSL darkens the base under its dielectric
+#: by the lobe's directional albedo with F90 = 1 whatever the ior, which at the default 0.3 took
+#: 2.6 % off a Lambertian sphere's mean (11 % and more near its silhouette) and at 1 takes 0.2 %
+#: (docs/exports.md).
+NO_SPECULAR_ROUGHNESS = 1.0
 
 
 def standard_libraries():
@@ -123,4 +130,5 @@ def _surface(doc, layer: Layer, folder: Path):
         node.setInputValue("specular_roughness", ggx_roughness(layer.roughness))
     else:
         node.setInputValue("specular_weight", 0.0)
+        node.setInputValue("specular_roughness", NO_SPECULAR_ROUGHNESS)
     return node
