@@ -52,7 +52,9 @@ def camera() -> Camera:
     )
 
 
-def render_truth(data: MeshData, integrator: dict, light: np.ndarray | None, spp: int):
+def render_truth(
+    data: MeshData, integrator: dict, light: np.ndarray | None, spp: int, bsdf: dict = BSDF
+):
     from fit.render import render
     from fit.render.scene import mesh, sensor_dict
 
@@ -60,7 +62,7 @@ def render_truth(data: MeshData, integrator: dict, light: np.ndarray | None, spp
         "type": "scene",
         "integrator": integrator,
         "sensor": sensor_dict(camera(), spp),
-        "object": mesh(data, "object", mi.load_dict(BSDF)),
+        "object": mesh(data, "object", mi.load_dict(bsdf)),
     }
     if light is not None:
         scene["light"] = {
@@ -71,9 +73,10 @@ def render_truth(data: MeshData, integrator: dict, light: np.ndarray | None, spp
     return render(mi.load_dict(scene), spp)
 
 
-def write_folder(folder, data: MeshData) -> np.ndarray:
-    """A DiLiGenT-layout folder of `data`: 16-bit linear PNGs (each scaled by its light's
-    intensity), light files, mask.png and Normal_gt.mat. Returns the normal map."""
+def write_folder(folder, data: MeshData, bsdf: dict = BSDF, lights=LIGHTS) -> np.ndarray:
+    """A DiLiGenT-layout folder of `data` with `bsdf` under `lights` (unit directions towards
+    them): 16-bit linear PNGs (each scaled by its light's intensity), light files, mask.png and
+    Normal_gt.mat. Returns the normal map."""
     import OpenImageIO as oiio
     from scipy.io import savemat
 
@@ -88,8 +91,10 @@ def write_folder(folder, data: MeshData) -> np.ndarray:
     out.write_image((mask[..., None] * 255).astype(np.uint8))  # (H, W, 1): OIIO misreads 2-D
     out.close()
     names = []
-    for k, (light, intensity) in enumerate(zip(LIGHTS, INTENSITY, strict=True)):
-        image = render_truth(data, {"type": "direct"}, light / np.linalg.norm(light), 64)
+    intensities = np.resize(INTENSITY, (len(lights), 3))
+    for k, (light, intensity) in enumerate(zip(lights, intensities, strict=True)):
+        direction = light / np.linalg.norm(light)
+        image = render_truth(data, {"type": "direct"}, direction, 64, bsdf)
         scaled = np.clip(image * intensity * 0.5, 0, 1)
         name = f"{k:03d}.png"
         out = oiio.ImageOutput.create(str(folder / name))
@@ -98,8 +103,8 @@ def write_folder(folder, data: MeshData) -> np.ndarray:
         out.close()
         names.append(name)
     (folder / "filenames.txt").write_text("\n".join(names) + "\n")
-    np.savetxt(folder / "light_directions.txt", LIGHTS / np.linalg.norm(LIGHTS, axis=1)[:, None])
-    np.savetxt(folder / "light_intensities.txt", INTENSITY * 0.5)
+    np.savetxt(folder / "light_directions.txt", lights / np.linalg.norm(lights, axis=1)[:, None])
+    np.savetxt(folder / "light_intensities.txt", intensities * 0.5)
     return normals
 
 

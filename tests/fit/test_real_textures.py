@@ -1,0 +1,121 @@
+"""Objects whose colour varies over the surface, in DiLiGenT's layout (a height field whose UVs
+are the image's coordinates): a two-colour torus made here, relit by the per-pixel models of
+`layerfit bench --only relight` and fitted with a colour texture; and the real DiLiGenT pot
+against those models on the same held-out lights (slow)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+mi = pytest.importorskip("mitsuba")
+
+from test_normal_map_objects import H, W, torus, write_folder  # noqa: E402
+
+from captures import open_capture  # noqa: E402
+from captures.images import write_image  # noqa: E402
+from fit.bench.relight import load, per_pixel, scores, uniform  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+#: Unit-ish directions towards eight lights (camera frame: x right, y up, z towards it).
+LIGHTS = np.array(
+    [
+        [0.0, 0.0, 1.0],
+        [0.5, 0.3, 0.81],
+        [-0.45, 0.2, 0.87],
+        [0.1, -0.55, 0.83],
+        [0.6, -0.2, 0.77],
+        [-0.3, -0.4, 0.87],
+        [0.25, 0.55, 0.8],
+        [-0.6, 0.05, 0.8],
+    ]
+)
+LEFT, RIGHT = (0.7, 0.3, 0.15), (0.2, 0.4, 0.6)
+
+
+def two_colour_torus(folder: Path) -> Path:
+    """A flat torus whose left half (in the image) is one colour and right half another, its
+    UVs the image's coordinates like the height field's, in a DiLiGenT-layout folder."""
+    data = torus(27.0, 10.0, 0.0)
+    x, y = data.positions[:, 0], data.positions[:, 1]
+    data = dataclasses.replace(data, uvs=np.stack([(x + W / 2) / W, 0.5 + y / H], -1))
+    texels = np.empty((2, 64, 3), np.float32)
+    texels[:, :32], texels[:, 32:] = LEFT, RIGHT
+    colours = write_image(folder.parent / f"{folder.name}-colours.exr", texels)
+    bitmap = {"type": "bitmap", "filename": str(colours), "raw": True, "filter_type": "nearest"}
+    write_folder(folder, data, {"type": "diffuse", "reflectance": bitmap}, LIGHTS)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory) -> Path:
+    return two_colour_torus(tmp_path_factory.mktemp("real") / "torus")
+
+
+def test_the_per_pixel_models_relight_a_lambertian_object(folder):
+    """The per-pixel Lambert model is the one the torus was rendered with: it relights the two
+    lights it did not see closely; one colour for the whole object cannot; the shared lobe,
+    which this object does not have, costs nothing."""
+    capture, small = open_capture(folder), open_capture(folder, 2)
+    data = load(capture, folder)
+    fitted = np.arange(len(LIGHTS)) < 6
+    per = scores(capture, data, per_pixel(data, fitted, lobe=False), 2, small)
+    one = scores(capture, data, uniform(data, fitted), 2, small)
+    lobe = scores(capture, data, per_pixel(data, fitted, lobe=True), 2, small)
+    assert per[~fitted].max() < 0.05, per
+    assert one[~fitted].min() > 0.2, one
+    assert lobe[~fitted].max() < per[~fitted].max() + 0.005, (lobe, per)
+
+
+def test_a_colour_texture_is_fitted_on_a_height_field(folder, tmp_path):
+    """`layerfit fit` with the reflectance a texture over the image (a texel per 2x2 pixels of
+    the fit): the texture's two halves come out the torus's two colours, and the lights held out
+    relight closely."""
+    from fit.commands.fit import fit
+
+    config = tmp_path / "fit.toml"
+    config.write_text(
+        f'capture = "{folder.as_posix()}"\n'
+        '[material]\ntype = "oren_nayar"\nreflectance = [0.5, 0.5, 0.5]\nsigma = 0.0\n'
+        '[fit]\nfree = ["oren_nayar.reflectance"]\ndownscale = 2\nholdout = 2\n'
+        '[fit.textures]\n"oren_nayar.reflectance" = [24, 20]\n'
+        '[[fit.phases]]\nsolver = "adam"\nsteps = 60\nspp = 8\nlr = 0.1\naverage = 0.5\n'
+    )
+    summary, out = fit(config, tmp_path / "run")
+    texture = np.asarray(summary["values"]["oren_nayar.reflectance"]).reshape(20, 24, 3)
+    sd = json.loads((out / "summary.json").read_text())["textures"]["oren_nayar.reflectance"]
+    assert (out / sd["sd_file"]).is_file() and sd["smoothness"] > 0
+    # the texels the torus covers on either side, away from the colour edge
+    capture = open_capture(folder, 2)
+    covered = capture.views[0].weight > 0  # 40 x 48 pixels: a texel per 2 x 2
+    blocks = covered.reshape(20, 2, 24, 2).all(axis=(1, 3))
+    left, right = blocks.copy(), blocks.copy()
+    left[:, 10:], right[:, :14] = False, False
+    np.testing.assert_allclose(np.median(texture[left], 0), LEFT, atol=0.03)
+    np.testing.assert_allclose(np.median(texture[right], 0), RIGHT, atol=0.03)
+    # the lights held out relit (the report's 64-spp renders; measured 0.053 both): a uniform
+    # colour scores above 0.2 here (the test above)
+    held = [v["rmse"] for v in summary["views"] if v["held_out"]]
+    assert len(held) == 2 and max(held) < 0.08, held
+
+
+@pytest.mark.slow
+def test_the_diligent_pot_relights_better_than_the_per_pixel_models(shared_data, tmp_path):
+    """configs/diligent-pot1.toml, unchanged but for where its capture is: on the 4 lights it
+    holds out, its relit relative RMSE is below the per-pixel Lambert + one Cook-Torrance lobe
+    model's (measured 0.061 against 0.064; per-pixel Lambert 0.091, one colour 0.316)."""
+    from fit.bench.relight import relight_table
+
+    text = (ROOT / "configs" / "diligent-pot1.toml").read_text()
+    capture = (shared_data / "diligent-pot1").as_posix()
+    config = tmp_path / "diligent-pot1.toml"
+    config.write_text(text.replace('"../../shared/data/diligent-pot1"', f'"{capture}"'))
+    table = relight_table(config)
+    held = {row[0]: float(row[1]) for row in table.rows}
+    ours = held["layerfit (diligent-pot1.toml)"]
+    assert ours < held["per pixel + one Cook-Torrance lobe"] < held["Lambert colour per pixel"]
+    assert held["Lambert colour per pixel"] < held["one Lambert colour"]
