@@ -78,6 +78,13 @@ def main(scene_json: Path, view: int, usda: Path, out: Path, spp: int) -> None:
     background.inputs["Strength"].default_value = 1.0
     scene.world = world
 
+    render(scene, v["width"], v["height"], out, spp)
+
+
+def render(scene, width: int, height: int, out: Path, spp: int) -> None:
+    """Render `scene`'s camera with Cycles on the CPU as the peer targets were: `spp` samples,
+    no adaptive sampling or denoising, 8 bounces, a box pixel filter of width 1, the Standard
+    view transform; a float EXR at `out`."""
     scene.render.engine = "CYCLES"
     scene.cycles.device = "CPU"
     scene.cycles.samples = spp
@@ -88,7 +95,7 @@ def main(scene_json: Path, view: int, usda: Path, out: Path, spp: int) -> None:
     scene.cycles.filter_width = 1.0
     scene.cycles.seed = 1
     scene.view_settings.view_transform = "Standard"
-    scene.render.resolution_x, scene.render.resolution_y = v["width"], v["height"]
+    scene.render.resolution_x, scene.render.resolution_y = width, height
     scene.render.resolution_percentage = 100
     scene.render.image_settings.file_format = "OPEN_EXR"
     scene.render.image_settings.color_depth = "32"

@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 
 import bpy
+from blender_render import render  # beside this script: on sys.path when it runs
 
 
 def main(usda: Path, camera: str, width: int, height: int, out: Path, spp: int) -> None:
@@ -28,22 +29,7 @@ def main(usda: Path, camera: str, width: int, height: int, out: Path, spp: int) 
     cameras = {o.name: o for o in scene.objects if o.type == "CAMERA"}
     scene.camera = cameras[camera]
 
-    scene.render.engine = "CYCLES"
-    scene.cycles.device = "CPU"
-    scene.cycles.samples = spp
-    scene.cycles.use_adaptive_sampling = False
-    scene.cycles.use_denoising = False
-    scene.cycles.max_bounces = 8
-    scene.cycles.pixel_filter_type = "BOX"
-    scene.cycles.filter_width = 1.0
-    scene.cycles.seed = 1
-    scene.view_settings.view_transform = "Standard"
-    scene.render.resolution_x, scene.render.resolution_y = width, height
-    scene.render.resolution_percentage = 100
-    scene.render.image_settings.file_format = "OPEN_EXR"
-    scene.render.image_settings.color_depth = "32"
-    scene.render.filepath = str(out)
-    bpy.ops.render.render(write_still=True)
+    render(scene, width, height, out, spp)
 
 
 if __name__ == "__main__":

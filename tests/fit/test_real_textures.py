@@ -71,6 +71,7 @@ def test_the_per_pixel_models_relight_a_lambertian_object(folder):
     assert lobe[~fitted].max() < per[~fitted].max() + 0.005, (lobe, per)
 
 
+@pytest.mark.slow
 def test_a_colour_texture_is_fitted_on_a_height_field(folder, tmp_path):
     """`layerfit fit` with the reflectance a texture over the image (a texel per 2x2 pixels of
     the fit): the texture's two halves come out the torus's two colours, and the lights held out

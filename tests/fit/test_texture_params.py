@@ -143,8 +143,8 @@ def test_adam_moves_the_texels_then_gn_the_scalars_with_the_texels_held():
     values = {f.key: f.start for f in free}
     adam = Phase(solver="adam", steps=60, spp=8, lr=0.1, average=0.5)
     gn = Phase(solver="gn", steps=4, spp=16, jacobian_spp=16)
-    alone = run_schedule(problem, values, (adam,), seed=1)
-    both = run_schedule(problem, values, (adam, gn), seed=1, uncertainty_spp=16)
+    alone = run_schedule(problem, values, (adam,), seed=1, uncertainty_spp=16)
+    both = run_schedule(problem, alone.values, (gn,), seed=2, uncertainty_spp=16)
     texels = np.asarray(both.values["glaze.pigment"]).reshape(4, 4, 3)
     held = np.asarray(alone.values["glaze.pigment"]).reshape(4, 4, 3)
     np.testing.assert_allclose(texels, held, rtol=1e-6)  # float32 coordinates, unmoved
@@ -152,10 +152,10 @@ def test_adam_moves_the_texels_then_gn_the_scalars_with_the_texels_held():
     assert both.std is not None and set(both.std) == {"glaze.roughness"}
     assert 0 < both.std["glaze.roughness"] < 0.05
     # each texel's sd: small where the camera looks, the bounds' uniform sd where it never does
-    sd = both.texture_std["glaze.pigment"]
+    sd = alone.texture_std["glaze.pigment"]
     assert sd.shape == (4, 4, 3) and np.all(np.isfinite(sd)) and np.all(sd > 0)
     assert np.all(sd <= 1 / np.sqrt(12) + 1e-6)
-    assert 0.1 <= both.texture_seen["glaze.pigment"] <= 1
+    assert 0.1 <= alone.texture_seen["glaze.pigment"] <= 1
     # the texels facing the camera: near the truth, mostly within 3 of their sd (measured: 17
     # of 18 channels, the worst 4.1 sd; the texels were fitted at Adam's alpha, which gn moved)
     seen = np.all(sd < 0.1, axis=-1)
