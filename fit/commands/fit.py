@@ -135,7 +135,10 @@ def _partial(cfg, out, prepared: Prepared, checkpoint: Checkpoint, began: float)
     )
     checkpoint.flush()
     state = checkpoint.latest or {}
-    u = np.asarray(state.get("u", state.get("u_phase", problem.unconstrained(start))))
+    # a phase holding the textures offers its own coordinates as `u`, the whole vector as
+    # `u_full`
+    u = state.get("u_full", state.get("u", state.get("u_phase")))
+    u = np.asarray(problem.unconstrained(start) if u is None else u)
     steps = state.get("history", [])  # the phase's live list: what was saved of it
     steps = steps[: state.get("n_history", len(steps))]
     history = list(state.get("history_before", [])) + list(steps)

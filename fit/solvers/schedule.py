@@ -297,16 +297,20 @@ def run_schedule(
             "ends": list(ends),
             "reports": [r.as_dict() for r in reports],
         }
-        offer = (
-            (lambda state, done=done: checkpoint.offer({**done, **state})) if checkpoint else None
-        )
-        began = time.perf_counter()
         # forward-mode solvers move the scalars with the textures held (Adam fits textures)
         solved, take, put = (
             problem.holding_textures(u)
             if problem.textures and phase.solver != "adam"
             else (problem, _same, _second)
         )
+
+        def offer(state, done=done, u=u, put=put):
+            # a held phase's state is of its own coordinates; `u_full` is the whole vector (a
+            # stop's partial summary reads it)
+            full = {"u_full": put(u, state["u"])} if "u" in state and put is not _second else {}
+            checkpoint.offer({**done, **state, **full})
+
+        began = time.perf_counter()
         result = SOLVERS[phase.solver]().run(
             solved,
             take(u),
@@ -317,7 +321,7 @@ def run_schedule(
             options=phase.options,
             progress=report,
             resume=in_phase,
-            offer=offer,
+            offer=offer if checkpoint is not None else None,
         )
         result.reports[-1].seconds = time.perf_counter() - began
         if solved is not problem:

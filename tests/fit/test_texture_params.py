@@ -208,3 +208,44 @@ def test_smoothing_keeps_a_texture_the_data_pin_down():
     noisy = truth + rng.normal(0, 1e-3, truth.shape)
     smoothed, _, _ = smooth(noisy, h, 1.0)
     assert np.abs(smoothed - truth).max() < 0.02
+
+
+def test_a_stop_inside_the_held_phase_keeps_the_whole_vector_and_resumes(tmp_path):
+    """Ctrl-C inside `gn` with the texels held: the state offered holds the phase's own
+    coordinates (`u`, what its resume takes) and the whole vector (`u_full`, what the stop's
+    partial summary reads); resumed, the fit ends where an uninterrupted one does."""
+    from fit.solvers import Checkpoint
+
+    capture, _ = sphere(16, 12)
+    cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
+    material = with_free_textures(cfg.material, {"glaze.pigment": (2, 2)})
+    free = resolve(material, ["glaze.pigment", "glaze.roughness"])
+    problem = Problem(capture, material, free)
+    values = {f.key: f.start for f in free}
+    phases = (
+        Phase(solver="adam", steps=3, spp=2, lr=0.1),
+        Phase(solver="gn", steps=3, spp=4, jacobian_spp=4),
+    )
+    whole = run_schedule(problem, values, phases, seed=3, uncertainty_spp=4)
+
+    checkpoint = Checkpoint(tmp_path / "checkpoint.npz", interval=0.0)
+    offered = []
+    offer = checkpoint.offer
+
+    def stop_in_gn(state):
+        offered.append(state)
+        if state["phase"] == 1 and len(offered) > 4:
+            checkpoint.stop = True
+        offer(state)
+
+    checkpoint.offer = stop_in_gn
+    with pytest.raises(KeyboardInterrupt):
+        run_schedule(problem, values, phases, seed=3, uncertainty_spp=4, checkpoint=checkpoint)
+    state = checkpoint.latest
+    assert state["phase"] == 1 and np.size(state["u"]) == 1  # alpha alone
+    assert np.size(state["u_full"]) == problem.n_material == 13
+    resumed = Checkpoint(tmp_path / "checkpoint.npz")
+    again = run_schedule(
+        problem, values, phases, seed=3, uncertainty_spp=4, checkpoint=resumed, resume=True
+    )
+    np.testing.assert_allclose(again.u, whole.u, rtol=1e-5, atol=1e-6)
