@@ -638,7 +638,9 @@ def normal_map_mesh(
     positions = np.stack([x - w / 2, h / 2 - y, heights[rows, columns]], -1)
     unit = n[rows, columns]
     unit = unit / np.maximum(np.linalg.norm(unit, axis=-1, keepdims=True), 1e-12)
-    uvs = np.stack([x / w, 1.0 - y / h], -1)
+    # UVs: the image's coordinates, u to the right and v down, as Mitsuba reads a bitmap's rows:
+    # a texture fitted on it reads like the photographs (its first row at their top)
+    uvs = np.stack([x / w, y / h], -1)
     qi, qj = np.nonzero(quad)
     a, b = index[qi, qj], index[qi, qj + 1]  # top left, top right
     c, d = index[qi + 1, qj], index[qi + 1, qj + 1]  # bottom left, bottom right

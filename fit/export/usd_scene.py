@@ -9,9 +9,10 @@ capture's world is in its image's pixels, its scale unknown) holds:
   them (the exported maps' layout: v = 1 - Mitsuba's v). The analytic sphere becomes a UV sphere
   of `SPHERE_SEGMENTS` x `SPHERE_SEGMENTS / 2` quads, its vertices on the sphere and Mitsuba's
   UVs (u around z from +x, v from the top); the cup and a normal map's height field are the
-  meshes layerfit renders (a height field's UVs are its image coordinates: (x / W, y / H) from
-  the top-left corner); an OBJ is read as Mitsuba reads it (its welded vertices, normals: the
-  file's, interpolated, or flat per face with `face_normals`).
+  meshes layerfit renders (a height field's UVs are its image coordinates, (x / W, y / H) from
+  the top-left corner, so its `st` is (x / W, 1 - y / H)); an OBJ is read as Mitsuba reads it
+  (its welded vertices, normals: the file's, interpolated, or flat per face with
+  `face_normals`).
 - `/Scene/Looks/Material`: `material.usda` referenced, bound to the object.
 - `/Scene/Cameras/<view>`: one `UsdGeom.Camera` per distinct camera (views sharing one, as in
   photometric stereo, share its prim; `customData` lists them), looking from `origin` at

@@ -42,7 +42,7 @@ def two_colour_torus(folder: Path) -> Path:
     UVs the image's coordinates like the height field's, in a DiLiGenT-layout folder."""
     data = torus(27.0, 10.0, 0.0)
     x, y = data.positions[:, 0], data.positions[:, 1]
-    data = dataclasses.replace(data, uvs=np.stack([(x + W / 2) / W, 0.5 + y / H], -1))
+    data = dataclasses.replace(data, uvs=np.stack([(x + W / 2) / W, 0.5 - y / H], -1))
     texels = np.empty((2, 64, 3), np.float32)
     texels[:, :32], texels[:, 32:] = LEFT, RIGHT
     colours = write_image(folder.parent / f"{folder.name}-colours.exr", texels)

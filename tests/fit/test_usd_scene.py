@@ -334,8 +334,8 @@ def test_height_field_scene(tmp_path, shared_data):
     points = check_object(stage, len(data.positions))
     np.testing.assert_allclose(points, data.positions, rtol=1e-6)
     st = np.array(UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/Scene/Object")).GetPrimvar("st").Get())
-    h, w = capture.scene.meta["mask"].shape  # x right, y down from the top-left, over W and H
-    pixel = np.stack([data.positions[:, 0] + w / 2, h / 2 - data.positions[:, 1]], -1)
+    h, w = capture.scene.meta["mask"].shape  # x right, y up from the bottom-left, over W and H
+    pixel = np.stack([data.positions[:, 0] + w / 2, h / 2 + data.positions[:, 1]], -1)
     np.testing.assert_allclose(st, pixel / [w, h], atol=1e-6)
     (camera,) = cameras_of(stage).values()
     assert camera.GetProjectionAttr().Get() == UsdGeom.Tokens.orthographic
