@@ -102,7 +102,16 @@ def fit_results(config: Path, out: Path, summary: dict) -> None:
     for bound in summary["at_bounds"]:
         say("at a bound:", "yellow", bound_note(bound, len(summary.get("starts") or ()) or 1))
     if summary["std"] is None:
-        results.print("no uncertainty: too many free components for a Jacobian (textures)")
+        results.print(
+            "no standard deviations: every free parameter is a texture, or too many free "
+            "components for a Jacobian"
+        )
+    for key, texture in (summary.get("textures") or {}).items():
+        results.print(
+            f"{key}: texels' median sd {texture['median_sd']:.4f} ({texture['sd_file']})",
+            highlight=False,
+            markup=False,
+        )
     for report in summary["outcomes"]:
         if report["outcome"] in ("diverged", "failed") or report["rejected"]:
             say(f"{report['solver']}:", "yellow", f"{report['outcome']}: {report['message']}")
