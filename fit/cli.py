@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import enum
 import functools
 import math
 from collections.abc import Callable
@@ -55,6 +56,16 @@ Variant = Annotated[
         "--variant", envvar="LAYERFIT_VARIANT", help="Mitsuba variant (default llvm_ad_rgb)."
     ),
 ]
+
+
+class Quality(enum.StrEnum):
+    """`layerfit fit --quality`: `fit.solvers.schedule.QUALITIES`."""
+
+    draft = "draft"
+    default = "default"
+    best = "best"
+
+
 Force = Annotated[bool, typer.Option("--force", help="Replace existing outputs.")]
 Seed = Annotated[int, typer.Option(min=0, max=MAX_SEED, help="Random seed.")]
 
@@ -136,12 +147,14 @@ def bench(
     widths: Annotated[
         str, typer.Option(help="--only grid: comma-separated image widths (height: 3/4 of it).")
     ] = "64,128,256",
-    seeds: Annotated[int, typer.Option(min=1, help="--only versus: runs of each method.")] = 3,
+    seeds: Annotated[
+        int, typer.Option(min=1, help="--only versus, quality: runs of each method (seeds).")
+    ] = 3,
     results: Annotated[
         Path | None,
         typer.Option(
-            help="--only recovery, grid, versus: JSON of finished cases (kept: a rerun resumes; "
-            "default bench-<table>.json)."
+            help="--only recovery, grid, versus, quality: JSON of finished cases (kept: a rerun "
+            "resumes; default bench-<table>.json)."
         ),
     ] = None,
     out: Annotated[Path | None, typer.Option(help="Also write the tables (Markdown) here.")] = None,
@@ -257,14 +270,25 @@ def fit(
         int | None,
         typer.Option(min=1, help="Fit from this many starts on Ray workers, keep the best."),
     ] = None,
+    quality: Annotated[
+        Quality | None,
+        typer.Option(help="Trade time for accuracy (default: the config's fit.quality)."),
+    ] = None,
+    seed: Annotated[
+        int | None,
+        typer.Option(min=0, max=MAX_SEED, help="Random seed (default: the config's fit.seed)."),
+    ] = None,
     variant: Variant = None,
 ) -> None:
     """Fit the free material parameters to a capture into a run folder (preset, summary, report);
     print fitted vs known values."""
     from .commands.fit import fit as run
 
+    quality = None if quality is None else quality.value
     with ui.progress() as bar:
-        summary, folder = run(config, out, resume, force, holdout, starts, variant, bar)
+        summary, folder = run(
+            config, out, resume, force, holdout, starts, variant, bar, quality=quality, seed=seed
+        )
     ui.fit_results(config, folder, summary)
 
 

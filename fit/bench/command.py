@@ -16,13 +16,24 @@ SCENES = (DEFAULT_SCENE, CUP_SCENE)
 #: its samples under Mitsuba's 2^32 a render.
 MAX_SPP = 2**14
 #: The tables `only` names. Without `only` the first two run; the others take minutes to hours.
-TABLES = ("bsdf", "cup", "fit", "long", "recovery", "grid", "profile", "versus", "relight")
+TABLES = (
+    "bsdf",
+    "cup",
+    "fit",
+    "long",
+    "recovery",
+    "grid",
+    "profile",
+    "versus",
+    "relight",
+    "quality",
+)
 #: The fit config a table reads by default (`fit_config` None).
 FIT_CONFIGS = {"relight": Path("configs/diligent-pot1.toml")}
 #: The tables that keep their finished cases in a results file (a rerun resumes).
-RESUMABLE = ("recovery", "grid", "versus")
+RESUMABLE = ("recovery", "grid", "versus", "quality")
 #: The tables drawn to a PNG besides.
-PLOTTED = ("long", "grid", "versus")
+PLOTTED = ("long", "grid", "versus", "quality")
 #: The tables on the recovery sweep's cases (`size` and `shapes` apply).
 ON_CASES = ("recovery", "grid", "profile")
 
@@ -120,6 +131,7 @@ def run(
     from .grid import grid_cells, grid_table
     from .long_runs import long_run, long_run_table, plot_long_run
     from .profile import profile_table
+    from .quality import quality_table
     from .recovery import recovery_table
     from .relight import relight_table
     from .schedules import fit_trade_table
@@ -151,6 +163,8 @@ def run(
                 tables.append(versus_table(seeds, results, progress, plot=plot))
             if only == "relight":
                 tables.append(relight_table(fit_config, progress))
+            if only == "quality":
+                tables.extend(quality_table(seeds, results, progress, plot=plot))
         except InputError:
             raise
         except ValueError as err:  # bad input met during the work (pydantic's errors among it)

@@ -87,6 +87,8 @@ class _Running:
         if self.steps % self.every:
             return
         tail = state.get("tail", [])[: state.get("n_tail", 0)]
+        if "n_averaged" in state:  # `gn` offers all its iterates, and how many it would average
+            tail = tail[len(tail) - state["n_averaged"] :] if state["n_averaged"] else []
         answer = np.mean(tail, axis=0) if len(tail) else state["u"]
         seconds = time.perf_counter() - self.began
         self.trajectory.append([self.steps, seconds, self.error(np.asarray(answer, np.float32))])

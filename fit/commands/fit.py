@@ -32,11 +32,12 @@ import numpy as np
 
 from captures.errors import InputError
 
-from .. import interrupts
+from .. import interrupts, timing
 from ..config import FitConfig
 from ..errors import OutputError, Stopped
 from ..solvers import Checkpoint, Result, run_schedule
 from ..solvers.base import PhaseReport
+from ..solvers.schedule import QUALITIES
 from .prepare import Prepared, fit_identity, prepare
 from .run_folder import check_free, owned, write_run, writing
 
@@ -206,15 +207,18 @@ def fit(
     starts: int | None = None,
     variant: str | None = None,
     progress=None,
+    quality: str | None = None,
+    seed: int | None = None,
 ) -> tuple[dict, Path]:
     """`layerfit fit`: fit `config`'s free parameters to its capture into the run folder `out`
     (default `out/<config name>`); returns the summary and the run folder.
 
     `resume` continues a killed run from its checkpoint; `force` replaces an earlier run's
     results; `holdout` views are kept out and scored; `starts` > 1 fits from that many starts
-    on Ray workers. `progress`: a `rich.progress.Progress` (default: none shown). Bad input is
-    an `InputError` before any work (no run folder left behind); a stop (Ctrl-C, SIGTERM) is
-    `Stopped`, saying what was kept and how to resume."""
+    on Ray workers; `quality` and `seed` replace the config's `fit.quality` and `fit.seed`
+    (the resume command a stop prints repeats them). `progress`: a `rich.progress.Progress`
+    (default: none shown). Bad input is an `InputError` before any work (no run folder left
+    behind); a stop (Ctrl-C, SIGTERM) is `Stopped`, saying what was kept and how to resume."""
     from ..config import load_fit_config
     from .common import Quiet
     from .prepare import check_output
@@ -234,7 +238,12 @@ def fit(
                 break
             folder = folder.parent
 
-    cfg = load_fit_config(config)
+    cfg = load_fit_config(config, seed=seed)
+    if quality is not None:
+        if quality not in QUALITIES:
+            raise InputError(f"--quality {quality!r}: choose one of {', '.join(QUALITIES)}")
+        settings = cfg.settings.model_copy(update={"quality": quality})
+        cfg = dataclasses.replace(cfg, settings=settings)
     if starts is not None:
         if starts > 1 and resume:
             raise InputError(f"--starts {starts}: a multi-start fit has no checkpoint to --resume")
@@ -244,7 +253,9 @@ def fit(
     check_output(out, cfg, resume, force)
     try:
         with owned(out):
-            summary = _fit_owned(cfg, config, out, resume, holdout, starts, variant, progress)
+            summary = _fit_owned(
+                cfg, config, out, resume, holdout, starts, variant, progress, (quality, seed)
+            )
     except BaseException:  # nothing written: no empty run folder left (a checkpoint is kept)
         progress.stop()
         forget_out()
@@ -252,15 +263,23 @@ def fit(
     return summary, out
 
 
-def _fit_owned(cfg, config, out, resume, holdout, starts, variant, progress) -> dict:
-    """`fit`'s work once it owns the run folder; a stop is `Stopped`, saying what was kept."""
+def _fit_owned(cfg, config, out, resume, holdout, starts, variant, progress, given) -> dict:
+    """`fit`'s work once it owns the run folder, its parts timed into the summary's
+    `timings_s`; a stop is `Stopped`, saying what was kept."""
+    with timing.recording():
+        return _fit_timed(cfg, config, out, resume, holdout, starts, variant, progress, given)
+
+
+def _fit_timed(cfg, config, out, resume, holdout, starts, variant, progress, given) -> dict:
     from ..cluster import Cancelled
     from .common import start
     from .prepare import check_resume
 
     try:
-        start(variant)
-        prepared = prepare(cfg, holdout)  # reads the photos: a Ctrl-C stops it at once
+        with timing.timed("start Mitsuba, Dr.Jit and the plugins"):
+            start(variant)
+        with timing.timed("read the capture, build the problem"):
+            prepared = prepare(cfg, holdout)  # reads the photos: a Ctrl-C stops it at once
         if interrupts.asked():  # one that JAX's gc callback swallowed meanwhile
             raise KeyboardInterrupt
         if resume:  # before any progress bar: a checkpoint of another fit is one line
@@ -288,13 +307,13 @@ def _fit_owned(cfg, config, out, resume, holdout, starts, variant, progress) -> 
         )
     except (Interrupted, KeyboardInterrupt) as err:
         progress.stop()
-        what = stopped(err, config, out, holdout, variant, starts)
+        what = stopped(err, config, out, holdout, variant, starts, *given)
         raise Stopped(what, getattr(err, "unwritten", None)) from None
     except Cancelled as err:  # --starts: the Ray tasks were cancelled
         raise Stopped(f"{err}; nothing written") from None
 
 
-def stopped(err, config, out, holdout, variant, starts) -> str:
+def stopped(err, config, out, holdout, variant, starts, quality=None, seed=None) -> str:
     """What a stopped fit left: its checkpoint (the stop's own state, or an earlier one when a
     full disk kept that from being written) and how to resume it."""
     if not (out / "checkpoint.npz").exists():
@@ -304,11 +323,18 @@ def stopped(err, config, out, holdout, variant, starts) -> str:
         if getattr(err, "saved", True)
         else "the stop's state could not be saved (an earlier checkpoint is kept)"
     )
-    return f"{what}; resume with: {resume_command(config, out, holdout, variant, starts)}"
+    command = resume_command(config, out, holdout, variant, starts, quality, seed)
+    return f"{what}; resume with: {command}"
 
 
 def resume_command(
-    config: Path, out: Path, holdout: int | None, variant: str | None, starts: int | None = None
+    config: Path,
+    out: Path,
+    holdout: int | None,
+    variant: str | None,
+    starts: int | None = None,
+    quality: str | None = None,
+    seed: int | None = None,
 ) -> str:
     """The command that resumes this fit: its config, run folder and the options that change
     what is fitted (a resume without `--holdout` is refused as another fit), each quoted for a
@@ -317,4 +343,6 @@ def resume_command(
     words += ["--holdout", str(holdout)] if holdout is not None else []
     words += ["--variant", variant] if variant else []
     words += ["--starts", str(starts)] if starts is not None else []  # 1 over a config's many
+    words += ["--quality", quality] if quality is not None else []  # over the config's own
+    words += ["--seed", str(seed)] if seed is not None else []
     return shlex.join(words)

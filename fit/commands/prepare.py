@@ -413,6 +413,8 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
         refusal = forward_mode_refusal(problem)
     # the default schedule's phases are named as such, with how to give others
     given = "" if "phases" in cfg.settings.model_fields_set else " (the default schedule)"
+    if cfg.quality != "default":
+        given += f" (at fit.quality = {cfg.quality!r})"
     largest, sizes = 0, set()
     for k, phase in enumerate(cfg.phases):  # fail before any work, naming the phase
         if refusal and phase.solver in ("gn", "lm"):

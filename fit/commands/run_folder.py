@@ -23,6 +23,7 @@ import numpy as np
 from captures.errors import InputError
 from captures.images import TEXTURE_SUFFIXES, write_image
 
+from .. import timing
 from ..config import config_identity
 from ..errors import OutputError
 from ..material import (
@@ -82,7 +83,9 @@ def write_run(
         for f in free
         if f.shape
     }
-    panels = _panels(cfg, capture, held, problem, result)
+    with timing.timed("report: renders of the fitted views"):
+        panels = _panels(cfg, capture, held, problem, result)
+    began = time.perf_counter()
     summary = _summary(cfg, capture, held, start, result, wall, panels, interrupted, free)
     if starts is not None:
         summary["starts"] = starts
@@ -112,6 +115,8 @@ def write_run(
             shown[f"{key} sd"] = sd if sd.shape[-1] == 3 else sd[..., 0]
     title = f"{cfg.path.name}{' (interrupted)' if interrupted else ''}"
     write_report(out, summary, panels, shown, title)
+    timing.add("report: figures, preset and files", time.perf_counter() - began)
+    summary["timings_s"] = timing.recorded()  # empty outside `layerfit fit`'s recording
     # the summary last: beside no checkpoint, it marks a finished run folder (batches skip those)
     write_text(out / "summary.json", json.dumps(_finite(summary), indent=2, allow_nan=False))
     for path, inode in before.items():  # every file is written anew (atomic: a new inode)

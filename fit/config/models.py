@@ -24,7 +24,7 @@ from ..errors import ConfigError
 from ..limits import MAX_SEED, MAX_SPP
 from ..material import Material, load_material, read_toml
 from ..material.textures import MAX_TEXELS, with_free_textures
-from ..solvers.schedule import DEFAULT_SCHEDULE, Phase, default_schedule
+from ..solvers.schedule import DEFAULT_SCHEDULE, Phase, at_quality, default_schedule
 
 
 class RenderSettings(StrictModel):
@@ -112,6 +112,9 @@ class FitSettings(StrictModel):
     phases: list[Phase] = Field(default_factory=lambda: list(DEFAULT_SCHEDULE), min_length=1)
     """The schedule: solver phases run in turn (absent: the default schedule, its first Adam
     steps holding the mask thresholds when any is free)."""
+    quality: Literal["draft", "default", "best"] = "default"
+    """Trade time for accuracy: draft halves every phase's steps and fits the full-resolution
+    phases at half resolution, best doubles the steps (`fit.solvers.schedule.at_quality`)."""
     starts: PositiveInt = 1
     """Multi-start: run the schedule from this many starts (Ray workers), keep the best."""
     start_spread: PositiveFloat = 1.5
@@ -149,7 +152,12 @@ class FitConfig:
     material: Material
     settings: FitSettings
 
-    def __getattr__(self, name):  # cfg.free, cfg.phases, ...: the [fit] settings
+    @property
+    def phases(self) -> list[Phase]:
+        """The schedule's phases at the settings' quality preset."""
+        return list(at_quality(self.settings.phases, self.settings.quality))
+
+    def __getattr__(self, name):  # cfg.free, cfg.seed, ...: the [fit] settings
         if name in FitSettings.model_fields:
             return getattr(self.settings, name)
         raise AttributeError(name)

@@ -13,7 +13,7 @@ from pydantic import Field, PositiveFloat, PositiveInt
 from ..limits import MAX_SPP
 from ..material import to_physical
 from .adam import averaged_result
-from .base import AbstractSolver, Options, Result
+from .base import AbstractSolver, Options, Outcome, Result
 from .problem import jax_seed, noise_ratio, residuals
 from .uncertainty import CROSS_SEED_OFFSET, linear_model, refuse_forward_mode
 
@@ -53,7 +53,15 @@ class GNOptions(Options):
     max_step: PositiveFloat = 1.0
     """The largest change of any solver coordinate in one step."""
     average: float = Field(0.5, ge=0.0, le=1.0)
-    """Fraction of the last iterates averaged into the result (Polyak)."""
+    """Fraction of the last iterates averaged into the result (Polyak): of the steps taken,
+    when the phase ends before its `steps` (`window`)."""
+    window: Annotated[int, Field(ge=0)] = 0
+    """The phase ends (outcome `converged`, its `steps` a limit) once its iterates have settled:
+    over its last `window` steps, every coordinate's net move is within `tolerance` standard
+    errors of its moves' mean from zero (`settled`): they moved less than their step-to-step
+    noise allows. 0: every step runs."""
+    tolerance: PositiveFloat = 1.0
+    """With `window`: how many standard errors of the mean move count as settled."""
     gradient: Literal["control", "reverse"] = "control"
     """Each step's gradient. `reverse`: the residual `r` of a fresh render times its reverse
     pass (another seed), `J_B^T r`. `control`: the residual's mean over the phase's last steps,
@@ -122,6 +130,29 @@ def _curvature(j1: np.ndarray, j2: np.ndarray) -> np.ndarray:
     scale = np.ones_like(diagonal)
     scale[ok] = np.sqrt(np.clip(cautious[ok], lowest[ok], diagonal[ok]) / diagonal[ok])
     return plain * np.outer(scale, scale)
+
+
+def _averaged(taken: int, average: float) -> int:
+    """How many of a phase's last iterates its result averages, `taken` steps in."""
+    return round(average * taken)
+
+
+def settled(moves: list, tolerance: float) -> bool:
+    """Whether a phase's last moves (rows, each step's change of the iterate; `GNOptions.window`
+    of them) say its iterates have settled: for every coordinate the moves' mean is within
+    `tolerance` standard errors (their sample sd over the square root of their count) of zero.
+    At the optimum each move is the gradient's noise mapped through the curvature, zero on
+    average; relaxing toward it, the moves point one way and their mean stands out of their
+    noise. A move is `eta` times the Newton step (the estimated way to the optimum), so the
+    mean is the iterates' net move over the window. A step that was rejected (NaN), or fewer
+    than two: not settled."""
+    if len(moves) < 2:
+        return False
+    x = np.asarray(moves, np.float64)
+    if not np.all(np.isfinite(x)):
+        return False
+    se = x.std(axis=0, ddof=1) / np.sqrt(len(x))
+    return bool(np.all(np.abs(x.mean(axis=0)) <= tolerance * se))
 
 
 class GaussNewton(AbstractSolver):
@@ -198,18 +229,21 @@ class GaussNewton(AbstractSolver):
         # (J_B^T m, r) from one render and its reverse pass
         projected_grad = jax.jit(jax.grad(projected, has_aux=True))
         mean = None if resume is None else resume.get("mean_residual")
-        history, tail, gradients, rejected, first = [], [], [], 0, 0
+        # every step's iterate after it, (iterate before, gradient) and move: the result averages
+        # the last `average` of the steps taken, `window` tests the last moves
+        history, iterates, pairs, moves, rejected, first = [], [], [], [], 0, 0
         model = linear_model(problem, downscale)
         # (image, values, the means of the phase's two series of physical Jacobian renders)
         linear = None
         if resume is not None:
             first = int(resume["step"])  # `u` is the saved one (above)
             history, rejected = list(resume["history"]), int(resume["rejected"])
-            tail = list(np.asarray(resume["tail"]))
-            gradients = list(np.asarray(resume.get("tail_gradients", [])))
+            iterates = list(np.asarray(resume["tail"]))
+            pairs = list(np.asarray(resume.get("tail_gradients", [])))
+            moves = list(np.asarray(resume.get("moves", [])))
             if len(resume["leaves"]) == 4:  # the Jacobians in use when the state was offered
                 linear = tuple(np.asarray(leaf, np.float32) for leaf in resume["leaves"])
-        first_averaged = steps - round(options.average * steps)
+        settled_at = None
         for i in range(first, steps):
             step_seed = seed * 100003 + i + 1
             if linear is None or i % options.refresh == 0:
@@ -243,15 +277,15 @@ class GaussNewton(AbstractSolver):
             delta = -options.eta * (inverse @ grad)
             delta *= min(1.0, options.max_step / max(float(np.max(np.abs(delta))), 1e-30))
             new_u = u + delta.astype(np.float32)
-            if i >= first_averaged and np.all(np.isfinite(grad)):
-                gradients.append(np.concatenate([u, grad]).astype(np.float32))
+            pairs.append(np.concatenate([u, grad]).astype(np.float32))
             if np.all(np.isfinite(new_u)) and np.isfinite(value):
+                moves.append(new_u - u)  # as taken: clipped, in float32
                 u = new_u
             else:
+                moves.append(np.full_like(u, np.nan))
                 rejected += 1
             history.append(value)
-            if i >= first_averaged:
-                tail.append(u.copy())
+            iterates.append(u.copy())
             if progress:
                 progress(i + 1, value)
             if offer:
@@ -262,22 +296,36 @@ class GaussNewton(AbstractSolver):
                         "leaves": list(linear),
                         "history": history,
                         "n_history": len(history),
-                        "tail": tail,
-                        "n_tail": len(tail),
-                        "tail_gradients": gradients,
-                        "n_tail_gradients": len(gradients),
+                        "tail": iterates,
+                        "n_tail": len(iterates),
+                        "n_averaged": _averaged(len(iterates), options.average),
+                        "tail_gradients": pairs,
+                        "n_tail_gradients": len(pairs),
+                        "moves": np.asarray(moves[-max(options.window, 1) :], np.float32),
                         "rejected": rejected,
                         "samples": [primal_spp, grad_spp],
                         **({} if mean is None else {"mean_residual": mean}),
                     }
                 )
-        out = averaged_result(self.name, problem, u, tail, None, history, steps, rejected)
+            window = options.window
+            if window and len(moves) >= window and settled(moves[-window:], options.tolerance):
+                settled_at = i + 1
+                break
+        taken = len(iterates)
+        n = _averaged(taken, options.average)
+        tail = iterates[taken - n :] if n else []
+        out = averaged_result(self.name, problem, u, tail, None, history, taken, rejected)
+        report = out.reports[-1]
+        if settled_at is not None and report.outcome != Outcome.DIVERGED:
+            report.outcome = Outcome.CONVERGED
+            said = f"settled after {settled_at} of {steps} steps"
+            report.message = f"{said}; {report.message}" if report.message else said
         if note:
-            report = out.reports[-1]
             report.message = f"{report.message}; {note}" if report.message else note
-        if gradients:
-            pairs = np.asarray(gradients, np.float64)
-            out.tail_gradients = (pairs[:, : len(u)], pairs[:, len(u) :])
+        finite = [p for p in pairs[taken - n :] if np.all(np.isfinite(p))] if n else []
+        if finite:
+            both = np.asarray(finite, np.float64)
+            out.tail_gradients = (both[:, : len(u)], both[:, len(u) :])
         return out
 
     @staticmethod

@@ -22,6 +22,7 @@ from pydantic import (
 from captures.errors import InputError
 from captures.model import FieldError
 
+from .. import timing
 from ..limits import MAX_SPP
 from .base import Options, PhaseReport, Result
 from .checkpoint import Checkpoint
@@ -118,7 +119,7 @@ class Phase(BaseModel):
 #: behind the default").
 DEFAULT_SCHEDULE = (
     Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
-    Phase(solver="gn", steps=56, spp=16, jacobian_spp=16, refresh=10, average=0.5),
+    Phase(solver="gn", steps=56, spp=16, jacobian_spp=16, refresh=10, average=0.5, window=8),
     Phase(solver="gn", steps=12, spp=64, jacobian_spp=32, refresh=6, average=1.0),
 )
 
@@ -133,6 +134,31 @@ TEXTURE_SCHEDULE = (
     Phase(solver="adam", steps=60, spp=16, lr=0.03, average=0.5),
     Phase(solver="gn", steps=12, spp=64, jacobian_spp=32, refresh=6, average=1.0),
 )
+
+
+#: Quality presets (`fit.quality`, `layerfit fit --quality`), each a change of the schedule (the
+#: default one or a config's own phases): `draft` halves every phase's steps (its limit, for a
+#: phase that ends when it settles) and renders the full-resolution phases at half resolution;
+#: `best` doubles every phase's steps. Their time and error: BENCHMARKS, "Quality presets".
+QUALITIES = ("draft", "default", "best")
+
+
+def at_quality(phases, quality: str = "default") -> tuple[Phase, ...]:
+    """`phases` at a quality preset (`QUALITIES`)."""
+    if quality not in QUALITIES:
+        raise ValueError(f"unknown quality {quality!r}; choose one of {', '.join(QUALITIES)}")
+    if quality == "default":
+        return tuple(phases)
+    out = []
+    for phase in phases:
+        fields = phase.model_dump()  # its options too (extra fields), validated again below
+        if quality == "draft":
+            fields["steps"] = max(1, -(-phase.steps // 2))
+            fields["downscale"] = 2 if phase.downscale == 1 else phase.downscale
+        else:
+            fields["steps"] = 2 * phase.steps
+        out.append(Phase(**fields))
+    return tuple(out)
 
 
 #: Samples per pixel of the renders that smooth the textures after Adam
@@ -289,7 +315,14 @@ def run_schedule(
         if k == smooth_before and in_phase is None:  # resumed inside it: u_phase is smoothed
             smoothed = smooth_textures(problem, u, TEXTURE_SPP, seed + smooth_before)
             u = smoothed.u
-        report = (lambda i, value, k=k: progress(k, i, value)) if progress else None
+        stamps: list[float] = []  # the first step's end: the renders recorded, compiled
+
+        def report(i, value, k=k, stamps=stamps):
+            if not stamps:
+                stamps.append(time.perf_counter())
+            if progress:
+                progress(k, i, value)
+
         done = {
             "phase": k,
             "u_phase": np.asarray(u, np.float32),
@@ -323,7 +356,10 @@ def run_schedule(
             resume=in_phase,
             offer=offer if checkpoint is not None else None,
         )
-        result.reports[-1].seconds = time.perf_counter() - began
+        result.reports[-1].seconds = seconds = time.perf_counter() - began
+        first_step = stamps[0] - began if stamps else seconds
+        timing.add(f"phase {k + 1} ({phase.solver}): first step", first_step)
+        timing.add(f"phase {k + 1} ({phase.solver}): other steps", seconds - first_step)
         if solved is not problem:
             result.u = put(u, result.u)
             result.values = problem.values(result.u)
@@ -346,7 +382,8 @@ def run_schedule(
             if checkpoint.stop:
                 raise KeyboardInterrupt
     if smooth_before == len(phases):  # the last phase is Adam's: smoothed at the end
-        smoothed = smooth_textures(problem, u, TEXTURE_SPP, seed + smooth_before)
+        with timing.timed("texture smoothing"):
+            smoothed = smooth_textures(problem, u, TEXTURE_SPP, seed + smooth_before)
         u = smoothed.u
         result.u, result.values = u, problem.values(u)
     if smoothed is not None:
@@ -362,17 +399,18 @@ def run_schedule(
     if problem.textures and phases[-1].solver == "adam":
         result.tail_variance = result.tail_gradients = None  # of all coordinates, not the held
     if forward_mode_refusal(last) is None:  # else no sd: std stays None
-        result.std, result.correlation, result.poorly_determined = uncertainty(
-            last,
-            take(u),
-            uncertainty_spp,
-            seed + len(phases),
-            extra_variance=result.tail_variance,
-            # the tail's gradients are of the last phase's loss: at another resolution they
-            # would not match the curvature rendered here
-            tail_gradients=result.tail_gradients if phases[-1].downscale == 1 else None,
-            # a Ctrl-C stops it between two renders (its checkpoint: the last phase's end);
-            # once it is done, the fit is whole and is written
-            stop=None if checkpoint is None else (lambda: checkpoint.stop),
-        )
+        with timing.timed("uncertainty"):
+            result.std, result.correlation, result.poorly_determined = uncertainty(
+                last,
+                take(u),
+                uncertainty_spp,
+                seed + len(phases),
+                extra_variance=result.tail_variance,
+                # the tail's gradients are of the last phase's loss: at another resolution they
+                # would not match the curvature rendered here
+                tail_gradients=result.tail_gradients if phases[-1].downscale == 1 else None,
+                # a Ctrl-C stops it between two renders (its checkpoint: the last phase's end);
+                # once it is done, the fit is whole and is written
+                stop=None if checkpoint is None else (lambda: checkpoint.stop),
+            )
     return result

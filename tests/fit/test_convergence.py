@@ -1,0 +1,156 @@
+"""Phases that end when they are done (`gn`'s `window`), quality presets, and the fit's time
+recorded part by part."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from sphere_problems import _gn
+
+from captures.errors import InputError
+from fit import timing
+from fit.solvers import DEFAULT_SCHEDULE, Phase
+from fit.solvers.base import Outcome
+from fit.solvers.gn import settled
+from fit.solvers.schedule import QUALITIES, at_quality
+
+
+def test_settled_asks_whether_the_mean_step_stands_out_of_its_noise():
+    """Steps that point one way (relaxing) are not settled; steps whose mean is well within
+    their standard error are; any non-finite step, or fewer than two, is not."""
+    zero_mean = np.array([[1.0, -2.0], [-1.0, 2.0]] * 4)
+    assert settled(list(zero_mean), 1.0)
+    relaxing = 0.5 ** np.arange(8.0)[:, None] * np.ones((1, 2))  # halving toward the optimum
+    assert not settled(list(relaxing), 1.0)
+    one_coordinate_moves = zero_mean.copy()
+    one_coordinate_moves[:, 1] += 3.0
+    assert not settled(list(one_coordinate_moves), 1.0)
+    assert settled(list(one_coordinate_moves), 10.0)  # within ten standard errors
+    with_nan = zero_mean.copy()
+    with_nan[3, 0] = np.nan
+    assert not settled(list(with_nan), 1.0)
+    assert not settled([zero_mean[0]], 1.0)
+    held = np.zeros((8, 2))  # a coordinate that never moves (no signal): settled
+    assert settled(list(held), 1.0)
+
+
+def test_settled_passes_pure_noise_as_often_as_its_tolerance_says():
+    """On steps of pure noise (the optimum reached) one coordinate's window of 8 settles with
+    the probability that a Student t with 7 degrees of freedom lies within 1 standard error
+    times sqrt(8)/sqrt(8): P(|t_7| <= 1) = 0.649."""
+    rng = np.random.default_rng(0)
+    rate = np.mean([settled(list(rng.normal(size=(8, 1))), 1.0) for _ in range(4000)])
+    assert rate == pytest.approx(0.649, abs=0.025)
+
+
+def _linear(problem, monkeypatch, optimum):
+    from test_solve import _linear_images
+
+    _linear_images(problem, monkeypatch, optimum)
+
+
+def test_a_windowed_phase_ends_when_settled_at_the_optimum(problem, monkeypatch):
+    """On an exact linear image from a far start, `gn` with a window ends `converged` before
+    its step limit, at the optimum (it does not stop while it still moves), and says after how
+    many steps; its result averages the last half of the steps it took."""
+    truth = {"glaze.pigment": [0.1, 0.22, 0.55], "glaze.roughness": 0.05, "glaze.ior": 1.52}
+    _linear(problem, monkeypatch, truth)
+    start = {"glaze.pigment": [0.4, 0.4, 0.4], "glaze.roughness": 0.2, "glaze.ior": 1.3}
+    result = _gn(problem, problem.unconstrained(start), 200, window=8, average=0.5)
+    report = result.reports[0]
+    assert report.outcome == Outcome.CONVERGED
+    assert 8 <= report.steps < 200 and len(result.history) == report.steps
+    assert f"settled after {report.steps} of 200 steps" in report.message
+    assert result.values["glaze.roughness"] == pytest.approx(0.05, rel=1e-3)
+    np.testing.assert_allclose(result.values["glaze.pigment"], truth["glaze.pigment"], atol=1e-4)
+    assert len(result.tail_gradients[0]) == round(0.5 * report.steps)
+    without = _gn(problem, problem.unconstrained(start), 30, average=0.5)
+    assert without.reports[0].outcome == Outcome.STEP_LIMIT and without.reports[0].steps == 30
+
+
+def test_quality_presets_change_every_phase():
+    """draft: half the steps (rounded up), the full-resolution phases at half resolution;
+    best: twice the steps; default: the phases as they are; their options kept."""
+    assert at_quality(DEFAULT_SCHEDULE) == DEFAULT_SCHEDULE
+    draft = at_quality(DEFAULT_SCHEDULE, "draft")
+    best = at_quality(DEFAULT_SCHEDULE, "best")
+    for phase, d, b in zip(DEFAULT_SCHEDULE, draft, best, strict=True):
+        assert d.steps == -(-phase.steps // 2) and b.steps == 2 * phase.steps
+        assert d.downscale == (2 if phase.downscale == 1 else phase.downscale)
+        assert b.downscale == phase.downscale
+        assert d.options == b.options == phase.options
+    odd = (Phase(solver="adam", steps=1, spp=4, downscale=3, lr=0.2),)
+    assert at_quality(odd, "draft")[0].steps == 1 and at_quality(odd, "draft")[0].downscale == 3
+    with pytest.raises(ValueError, match="choose one of draft, default, best"):
+        at_quality(DEFAULT_SCHEDULE, "fast")
+    assert QUALITIES == ("draft", "default", "best")
+
+
+def test_fit_quality_applies_to_a_configs_own_phases(tmp_path, shared_data):
+    """`fit.quality` in a config changes its own `[[fit.phases]]` (and the default schedule's),
+    and an unknown one is refused naming the key."""
+    from test_fitconfig import PHASES, ROOT
+
+    from fit.config import load_fit_config
+
+    text = (ROOT / "configs" / "peer-sphere.toml").read_text()
+    text = text.replace('"../../shared/data', f'"{shared_data}')
+    path = tmp_path / "fit.toml"
+    path.write_text(text.replace("seed = 0", 'seed = 0\nquality = "best"') + PHASES)
+    assert [p.steps for p in load_fit_config(path).phases] == [200, 10]
+    path.write_text(text.replace("seed = 0", 'seed = 0\nquality = "draft"'))
+    assert load_fit_config(path).phases == list(at_quality(DEFAULT_SCHEDULE, "draft"))
+    path.write_text(text.replace("seed = 0", 'seed = 0\nquality = "fast"'))
+    with pytest.raises(InputError, match=r"fit\.quality"):
+        load_fit_config(path)
+
+
+def test_timing_records_parts_only_inside_a_recording():
+    """Parts add up inside a recording (raising ones too) and cost nothing outside."""
+    timing.add("outside", 1.0)
+    with timing.recording() as parts:
+        timing.add("a", 1.0)
+        timing.add("a", 0.5)
+        with pytest.raises(RuntimeError), timing.timed("b"):
+            raise RuntimeError
+        assert timing.recorded() == parts
+    assert parts["a"] == 1.5 and parts["b"] >= 0.0 and "outside" not in parts
+    assert timing.recorded() == {}
+
+
+def test_the_summary_times_the_fit_part_by_part(tmp_path):
+    """`layerfit fit` writes where its time went into `summary.json`: start-up, the capture,
+    each phase's first step (its renders recorded and compiled) and the others, the
+    uncertainty and the report; the phases' parts add up to their reported seconds. With
+    `--quality` the phases are the preset's, and a stop's resume command repeats it."""
+    from test_fit_cli import CONFIG, small_capture
+
+    from fit.commands.fit import fit, resume_command
+
+    small_capture(tmp_path / "cap", views=2, size=(32, 24))
+    (tmp_path / "fit.toml").write_text(
+        CONFIG + '[[fit.phases]]\nsolver = "adam"\nsteps = 4\nspp = 4\nlr = 0.1\n'
+        '[[fit.phases]]\nsolver = "gn"\nsteps = 3\nspp = 8\njacobian_spp = 8\n'
+    )
+    summary, out = fit(tmp_path / "fit.toml", tmp_path / "run", quality="draft")
+    timings = json.loads((out / "summary.json").read_text())["timings_s"]
+    phases = summary["outcomes"]
+    assert [(o["solver"], o["steps"]) for o in phases] == [("adam", 2), ("gn", 2)]
+    assert [p["downscale"] for p in summary["phases"]] == [2, 2]
+    expected = ["start Mitsuba, Dr.Jit and the plugins", "read the capture, build the problem"]
+    for k, o in enumerate(phases):
+        expected += [f"phase {k + 1} ({o['solver']}): {p}" for p in ("first step", "other steps")]
+    expected += ["uncertainty", "report: renders of the fitted views"]
+    expected += ["report: figures, preset and files"]
+    assert list(timings) == expected
+    assert all(v >= 0 for v in timings.values())
+    for k, o in enumerate(phases):
+        mine = sum(v for key, v in timings.items() if key.startswith(f"phase {k + 1} "))
+        assert mine == pytest.approx(o["seconds"], rel=1e-6)
+    line = resume_command(tmp_path / "fit.toml", out, None, None, quality="draft")
+    assert line.endswith("--resume --quality draft")
+    with pytest.raises(InputError, match="--quality 'fast': choose one of draft, default, best"):
+        fit(tmp_path / "fit.toml", tmp_path / "other", quality="fast")
+    assert not (tmp_path / "other").exists()
