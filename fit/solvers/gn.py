@@ -235,6 +235,10 @@ class GaussNewton(AbstractSolver):
         model = linear_model(problem, downscale)
         # (image, values, the means of the phase's two series of physical Jacobian renders)
         linear = None
+        # per series, the mean over the refreshes of the linear image's constant part (image -
+        # J x): with the mean Jacobians it is the mean of the refreshes' linear images, which
+        # the uncertainty takes instead of rendering its own (`Result.linearisation`)
+        constants = None
         if resume is not None:
             first = int(resume["step"])  # `u` is the saved one (above)
             history, rejected = list(resume["history"]), int(resume["rejected"])
@@ -243,6 +247,8 @@ class GaussNewton(AbstractSolver):
             moves = list(np.asarray(resume.get("moves", [])))
             if len(resume["leaves"]) == 4:  # the Jacobians in use when the state was offered
                 linear = tuple(np.asarray(leaf, np.float32) for leaf in resume["leaves"])
+                if "constants" in resume:
+                    constants = np.asarray(resume["constants"], np.float32)
         settled_at = None
         for i in range(first, steps):
             step_seed = seed * 100003 + i + 1
@@ -253,11 +259,17 @@ class GaussNewton(AbstractSolver):
                 # along the way far more than the image's (alpha from 0.025 to 0.0135 next to
                 # its bound 0.01: d alpha / d u 4x smaller), and a mean of solver-space
                 # Jacobians kept the earlier, steeper ones (steps ~16x too short there).
-                image, x, j1, j2 = self._jacobians(problem, u, options, step_seed, downscale)
+                image, image2, x, j1, j2 = self._jacobians(
+                    problem, u, options, step_seed, downscale
+                )
+                c = np.stack([image - j1 @ x, image2 - j2 @ x]).astype(np.float32)
                 k = i // options.refresh + 1
                 if linear is not None and k > 1:
                     j1 = linear[2] + (j1 - linear[2]) / k
                     j2 = linear[3] + (j2 - linear[3]) / k
+                    constants = None if constants is None else constants + (c - constants) / k
+                else:
+                    constants = c
                 linear = (image, x, j1, j2)
             image, x, j1, j2 = linear
             jac1, jac2 = (np.asarray(model(u, image, j, x)[1], np.float64) for j in (j1, j2))
@@ -294,6 +306,7 @@ class GaussNewton(AbstractSolver):
                         "step": i + 1,
                         "u": u,
                         "leaves": list(linear),
+                        **({} if constants is None else {"constants": constants}),
                         "history": history,
                         "n_history": len(history),
                         "tail": iterates,
@@ -322,6 +335,11 @@ class GaussNewton(AbstractSolver):
             report.message = f"{said}; {report.message}" if report.message else said
         if note:
             report.message = f"{report.message}; {note}" if report.message else note
+        if constants is not None and taken:
+            _, x, j1, j2 = linear
+            refreshes = (taken - 1) // options.refresh + 1
+            images = (constants[0] + j1 @ x, constants[1] + j2 @ x)
+            out.linearisation = (*images, j1, j2, x, refreshes * max(options.jacobian_spp // 2, 1))
         finite = [p for p in pairs[taken - n :] if np.all(np.isfinite(p))] if n else []
         if finite:
             both = np.asarray(finite, np.float64)
@@ -330,13 +348,13 @@ class GaussNewton(AbstractSolver):
 
     @staticmethod
     def _jacobians(problem, u, options, seed, downscale):
-        """(image, the values at `u`, two Jacobians in physical values) from two renders of
-        `jacobian_spp / 2` with their own seeds."""
+        """(the two renders' images, the values at `u`, their two Jacobians in physical
+        values) from two renders of `jacobian_spp / 2` with their own seeds."""
         x = np.asarray(to_physical(problem.free, jnp.asarray(u[: problem.n_material]), jnp))
         renderer, half = problem.renderer(downscale), max(options.jacobian_spp // 2, 1)
         image, j1 = renderer.jacobian(x, seed + 0x5EED, half)
-        j2 = renderer.jacobian(x, seed + 0x5EED + CROSS_SEED_OFFSET, half)[1]
-        return image, x, j1, j2
+        image2, j2 = renderer.jacobian(x, seed + 0x5EED + CROSS_SEED_OFFSET, half)
+        return image, image2, x, j1, j2
 
     @staticmethod
     def _inverse(h: np.ndarray, options) -> np.ndarray:

@@ -101,11 +101,15 @@ class Phase(BaseModel):
 
 #: The default schedule: Adam with fresh seeds at half resolution and 8 spp is cheap and robust from
 #: far away (its scale-free steps also move a parameter started next to a bound, where the sigmoid
-#: is flat); then the stochastic Gauss-Newton `gn` at full resolution, in two phases: 56 steps of 16
-#: spp relax (the mean of their last half handed on: their last iterate, handed on until 2026-12-01,
-#: wanders 0.012-0.028 around alpha 0.02 at 16 spp, and the averaged phase did not relax from it),
-#: 12 of 64 spp are averaged. A gradient's variance falls faster than 1 / spp (8x for 4x the samples
-#: at alpha 0.02; BENCHMARKS, "Fitting: the measurements behind the default"), so the average is
+#: is flat); then the stochastic Gauss-Newton `gn` at full resolution, in two phases: steps of 16
+#: spp relax until their iterates have settled (`window`; at most 56: on the Cycles sphere 14 steps
+#: where 56 ran until 2026-12-05) and the mean of their last half is handed on (their last iterate,
+#: handed on until 2026-12-01, wanders 0.012-0.028 around alpha 0.02 at 16 spp, and the averaged
+#: phase did not relax from it); 8 of 64 spp are averaged, their curvature refreshed twice so
+#: that the uncertainty takes its Jacobians (as many samples as it rendered itself; 12 steps until
+#: 2026-12-05: BENCHMARKS, "Quality presets"). A gradient's variance falls faster than 1 / spp (8x
+#: for 4x the samples at alpha 0.02; BENCHMARKS, "Fitting: the measurements behind the default"),
+#: so the average is
 #: best taken over few steps of many samples; relaxing takes steps (24 x 64 spp alone left ior -0.03
 #: and -0.11 off at alpha 0.6 and 1, in a low-ior basin). `gn` replaced a second Adam phase (60 x 32
 #: spp, lr 0.02) that could not relax from where the first one left a weakly determined parameter:
@@ -120,7 +124,7 @@ class Phase(BaseModel):
 DEFAULT_SCHEDULE = (
     Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
     Phase(solver="gn", steps=56, spp=16, jacobian_spp=16, refresh=10, average=0.5, window=8),
-    Phase(solver="gn", steps=12, spp=64, jacobian_spp=32, refresh=6, average=1.0),
+    Phase(solver="gn", steps=8, spp=64, jacobian_spp=32, refresh=4, average=1.0),
 )
 
 
@@ -202,9 +206,10 @@ def _second(_, u):
 
 
 def _phase_result(result: Result) -> dict:
-    """What the uncertainty takes of a phase's result, for its end's checkpoint: its loss and
-    its averaged tail's variance and gradients (a run stopped after the last phase, in its
-    uncertainty or its files, resumed with the loss NaN and the sd without the tail's noise)."""
+    """What the uncertainty takes of a phase's result, for its end's checkpoint: its loss, its
+    averaged tail's variance and gradients, and its Jacobians (a run stopped after the last
+    phase, in its uncertainty or its files, resumed with the loss NaN and the sd without the
+    tail's noise)."""
     out: dict = {"last_loss": float(result.loss)}
     if result.tail_variance is not None:
         out["last_tail_variance"] = np.asarray(result.tail_variance, np.float64)
@@ -212,6 +217,10 @@ def _phase_result(result: Result) -> dict:
         out["last_tail_u"], out["last_tail_grad"] = (
             np.asarray(x, np.float64) for x in result.tail_gradients
         )
+    if result.linearisation is not None:  # the uncertainty takes its Jacobians
+        *arrays, spp = result.linearisation
+        out |= {f"last_linear_{i}": np.asarray(a, np.float32) for i, a in enumerate(arrays)}
+        out["last_linear_spp"] = int(spp)
     return out
 
 
@@ -227,6 +236,9 @@ def _restore_phase_result(result: Result, saved: dict, history: list) -> None:
             np.asarray(saved["last_tail_u"], np.float64),
             np.asarray(saved["last_tail_grad"], np.float64),
         )
+    if "last_linear_spp" in saved:
+        arrays = [np.asarray(saved[f"last_linear_{i}"], np.float32) for i in range(5)]
+        result.linearisation = (*arrays, int(saved["last_linear_spp"]))
 
 
 def solve(
@@ -275,10 +287,11 @@ def run_schedule(
     resume: bool = False,
 ) -> Result:
     """Run `phases` in turn from `start` (phase k uses seed + k), then the uncertainty at the
-    result (where `forward_mode_refusal` allows it: no texture, at most
-    `MAX_UNCERTAINTY_PARAMS` components). `progress(phase, step, loss)` after every step a
-    solver reports and at the end of each phase. Each phase's report (outcome,
-    steps, rejected steps, wall time) is in the result's `reports`.
+    result, at the last phase's resolution (where `forward_mode_refusal` allows it: no
+    texture, at most `MAX_UNCERTAINTY_PARAMS` components; from the last `gn` phase's own
+    Jacobians where they hold its samples). `progress(phase, step, loss)` after every step a
+    solver reports and at the end of each phase. Each phase's report (outcome, steps, rejected
+    steps, wall time) is in the result's `reports`.
 
     With a `checkpoint` the state is saved every interval of work and at each phase's end; with
     `resume` the run continues from the saved state (seeds follow from the phase and step, so
@@ -405,10 +418,14 @@ def run_schedule(
                 take(u),
                 uncertainty_spp,
                 seed + len(phases),
+                # at the last phase's resolution: the answer is that loss's minimum, and the
+                # tail's gradients (of that loss) match the curvature rendered there; a draft
+                # fit at half resolution spent 3.7 s of its 14.6 on full-resolution renders here
+                downscale=phases[-1].downscale,
                 extra_variance=result.tail_variance,
-                # the tail's gradients are of the last phase's loss: at another resolution they
-                # would not match the curvature rendered here
-                tail_gradients=result.tail_gradients if phases[-1].downscale == 1 else None,
+                tail_gradients=result.tail_gradients,
+                # the last phase's Jacobians, where it solved this problem (not textures held)
+                linearisation=result.linearisation if last is problem else None,
                 # a Ctrl-C stops it between two renders (its checkpoint: the last phase's end);
                 # once it is done, the fit is whole and is written
                 stop=None if checkpoint is None else (lambda: checkpoint.stop),

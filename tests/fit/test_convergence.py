@@ -154,3 +154,46 @@ def test_the_summary_times_the_fit_part_by_part(tmp_path):
     with pytest.raises(InputError, match="--quality 'fast': choose one of draft, default, best"):
         fit(tmp_path / "fit.toml", tmp_path / "other", quality="fast")
     assert not (tmp_path / "other").exists()
+
+
+def test_the_uncertainty_takes_the_last_phases_jacobians(problem, monkeypatch):
+    """Where the last `gn` phase's two series of Jacobian renders hold at least half the
+    uncertainty's samples each, the uncertainty renders nothing and gives what its own renders
+    give: on exact linear images with a misfit no parameter explains, the same sd as with
+    `uncertainty_spp` above what the phase holds (rendered)."""
+    from fit.solvers import run_schedule
+
+    target, _ = problem.target(1)
+    rng = np.random.default_rng(5)
+    jac = rng.normal(size=(target.size, 5)).astype(np.float32) * 0.05
+    misfit = 0.01 * rng.normal(size=target.size).astype(np.float32)
+    x_ref = np.array([0.1, 0.22, 0.55, 0.1, 1.5], np.float32)
+    calls = []
+
+    def image(x):
+        return target + misfit + jac @ (np.asarray(x, np.float32) - x_ref)
+
+    class Linear:
+        def jacobian(self, values, seed, spp):
+            calls.append(spp)
+            return image(values), jac
+
+    import jax.numpy as jnp
+
+    monkeypatch.setattr(
+        problem,
+        "render_fn",
+        lambda *a, **k: lambda x, seed: jnp.asarray(target + misfit)
+        + jnp.asarray(jac) @ (x - jnp.asarray(x_ref)),
+    )
+    monkeypatch.setattr(problem, "renderer", lambda downscale=1: Linear())
+    start = {"glaze.pigment": [0.12, 0.2, 0.5], "glaze.roughness": 0.12, "glaze.ior": 1.45}
+    phase = Phase(solver="gn", steps=4, spp=8, jacobian_spp=16, refresh=2, average=1.0)
+    reused = run_schedule(problem, start, [phase], 0, uncertainty_spp=32)
+    assert calls == [8] * 4  # two refreshes of two renders: none for the uncertainty
+    calls.clear()
+    rendered = run_schedule(problem, start, [phase], 0, uncertainty_spp=64)
+    assert calls == [8] * 4 + [32] * 2
+    for key, sd in rendered.std.items():
+        np.testing.assert_allclose(reused.std[key], sd, rtol=1e-4)
+        assert np.all(np.asarray(sd) > 0)
