@@ -1,7 +1,7 @@
 """The whole `layerfit fit` command at each quality preset against the loop a Mitsuba user writes
 today (`fit.bench.tutorial`): the time a user waits for (a fresh process: start-up, imports, the
 kernel cache, the fit, its uncertainty and report), the errors against the truth, and where the
-default's time goes, part by part, with an empty kernel cache and a warm one."""
+default's time goes, part by part, with empty kernel caches and warm ones."""
 
 from __future__ import annotations
 
@@ -29,14 +29,15 @@ QUALITY_CASES = (
 LOOP_CASE = "sphere"
 
 
-def command_run(config: Path, quality: str, seed: int, home: Path | None = None) -> dict:
-    """`layerfit fit CONFIG --quality Q --seed S` as a user runs it, in a fresh process (`home`:
-    its HOME, for an empty Dr.Jit kernel cache): its wall time, the summary's errors, their
-    ratios to the reported sd and its parts' timings. A failed command is a `RuntimeError`
-    with its last line."""
+def command_run(config: Path, quality: str, seed: int, cold: Path | None = None) -> dict:
+    """`layerfit fit CONFIG --quality Q --seed S` as a user runs it, in a fresh process (`cold`:
+    an empty folder for its Dr.Jit and JAX caches, as on a fresh clone): its wall time, the
+    summary's errors, their ratios to the reported sd and its parts' timings. A failed command
+    is a `RuntimeError` with its last line."""
     env = dict(os.environ)
-    if home is not None:
-        env["HOME"] = str(home)
+    if cold is not None:
+        env["DRJIT_CACHE_DIR"] = str(cold / "drjit")
+        env["JAX_COMPILATION_CACHE_DIR"] = str(cold / "jax")
     with tempfile.TemporaryDirectory(prefix="layerfit-bench-") as folder:
         out = Path(folder) / "run"
         command = [sys.executable, "-m", "fit", "fit", str(config), "--out", str(out)]
@@ -126,8 +127,8 @@ def quality_table(
     jobs = {}
     loop_config = dict(cases)[LOOP_CASE]
     # the cold run first: every later one finds the cache its first command filled
-    with tempfile.TemporaryDirectory(prefix="layerfit-cold-") as home:
-        jobs["cold default"] = functools.partial(command_run, loop_config, "default", 0, Path(home))
+    with tempfile.TemporaryDirectory(prefix="layerfit-cold-") as cold:
+        jobs["cold default"] = functools.partial(command_run, loop_config, "default", 0, Path(cold))
         for k in range(seeds):
             jobs[f"loop {k}"] = functools.partial(loop_run, loop_config, k)
             for name, path in cases:
@@ -199,7 +200,7 @@ def quality_table(
     breakdown.append(["whole command", *(f"{r['seconds']:.2f}" for r in (cold, warm))])
     where = Table(
         title=f"Where the default's time goes: `layerfit fit {loop_config}`",
-        columns=["part", "empty kernel cache s", "warm s"],
+        columns=["part", "empty caches s", "warm s"],
         rows=breakdown,
         notes=[
             "the summary's `timings_s` (seed 0); a phase's first step records and compiles "

@@ -4,6 +4,7 @@ recorded part by part."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -183,8 +184,11 @@ def test_the_uncertainty_takes_the_last_phases_jacobians(problem, monkeypatch):
     monkeypatch.setattr(
         problem,
         "render_fn",
-        lambda *a, **k: lambda x, seed: jnp.asarray(target + misfit)
-        + jnp.asarray(jac) @ (x - jnp.asarray(x_ref)),
+        lambda *a, **k: (
+            lambda x, seed: (
+                jnp.asarray(target + misfit) + jnp.asarray(jac) @ (x - jnp.asarray(x_ref))
+            )
+        ),
     )
     monkeypatch.setattr(problem, "renderer", lambda downscale=1: Linear())
     start = {"glaze.pigment": [0.12, 0.2, 0.5], "glaze.roughness": 0.12, "glaze.ior": 1.45}
@@ -197,3 +201,70 @@ def test_the_uncertainty_takes_the_last_phases_jacobians(problem, monkeypatch):
     for key, sd in rendered.std.items():
         np.testing.assert_allclose(reused.std[key], sd, rtol=1e-4)
         assert np.all(np.asarray(sd) > 0)
+
+
+def test_quality_table_compares_whole_commands_with_the_loop(tmp_path, monkeypatch):
+    """Each (object, preset, seed) command and each loop seed runs once (a rerun reads them
+    back); the table gives median times, the loop's time over each sphere preset's, the median
+    errors (colour worst channel, alpha relative, ior) and the errors within 3 sd; the second
+    table the default's parts, cold and warm, with the untimed rest; the plot is written."""
+    from fit.bench import quality
+
+    ran = []
+    seconds = {"draft": 10.0, "default": 20.0, "best": 40.0}
+
+    def fake_command(config, preset, seed, cold=None):
+        ran.append((str(config), preset, seed, cold is not None))
+        scale = {"draft": 4.0, "default": 2.0, "best": 1.0}[preset]
+        return {
+            "seconds": seconds[preset] + seed + (5.0 if cold is not None else 0.0),
+            "fit_seconds": seconds[preset] - 3.0,
+            "errors": {
+                "g.pigment": [0.001 * scale, -0.002 * scale, 0.0],
+                "g.roughness": 0.001,
+                "g.ior": -0.003 * scale,
+                "gain.view": [0.5],
+            },
+            "truth": {"g.pigment": [0.1, 0.2, 0.3], "g.roughness": 0.05, "g.ior": 1.5},
+            "error_over_std": {"g.pigment": [0.5, 1.0, 0.1], "g.ior": 4.0 if scale == 4 else 1.0},
+            "timings": {
+                "phase 1 (adam): first step": 1.0 + (2.0 if cold is not None else 0.0),
+                "uncertainty": 2.0,
+            },
+            "steps": [100, 14, 8],
+        }
+
+    def fake_loop(config, seed):
+        ran.append((str(config), "loop", seed, False))
+        return {
+            "seconds": 100.0 + seed,
+            "errors": {"g.pigment": [0.01, 0.0, 0.0], "g.roughness": 0.002, "g.ior": 0.004},
+            "truth": {"g.pigment": [0.1, 0.2, 0.3], "g.roughness": 0.05, "g.ior": 1.5},
+        }
+
+    monkeypatch.setattr(quality, "command_run", fake_command)
+    monkeypatch.setattr(quality, "loop_run", fake_loop)
+    cases = (("sphere", Path("s.toml")), ("torus", Path("t.toml")))
+    presets, parts = quality.quality_table(
+        3, tmp_path / "q.json", cases=cases, plot=tmp_path / "q.png"
+    )
+    assert len(ran) == 1 + 3 * (1 + 2 * 3) and sum(c for *_, c in ran) == 1
+    assert (tmp_path / "q.png").stat().st_size > 10_000
+    rows = {(r[0], r[1]): r for r in presets.rows}
+    # sphere default: median 21 s, the loop's 101 s is 4.8x; colour 0.004, alpha 2 %, ior 0.006
+    assert rows[("sphere", "default")][2:7] == ["21.0", "4.8x", "0.0040", "2.0 %", "0.0060"]
+    assert rows[("sphere", "the tutorial loop")][2:7] == [
+        "101.0",
+        "1.0x",
+        "0.0100",
+        "4.0 %",
+        "0.0040",
+    ]
+    assert rows[("torus", "default")][3] == "-"  # the loop runs on the sphere only
+    assert rows[("sphere", "draft")][-1] == "9 of 12" and rows[("sphere", "best")][-1] == "12 of 12"
+    table = {r[0]: r[1:] for r in parts.rows}
+    assert table["phase 1 (adam): first step"] == ["3.00", "1.00"]
+    assert table["whole command"] == ["25.00", "20.00"]
+    assert table["interpreter, imports, exit (the rest)"] == ["20.00", "17.00"]
+    quality.quality_table(3, tmp_path / "q.json", cases=cases)
+    assert len(ran) == 22  # all read back
