@@ -215,6 +215,8 @@ def quality_table(
 def _plot_trade(done: dict, seeds: int, cases, out: Path) -> None:
     """Each object's presets as time against alpha's error (medians over the seeds, joined in
     order of time), and the tutorial loop's point."""
+    from matplotlib.ticker import ScalarFormatter
+
     from ..output.figures import pyplot, save_figure
 
     plt = pyplot()
@@ -240,6 +242,9 @@ def _plot_trade(done: dict, seeds: int, cases, out: Path) -> None:
         ylabel="alpha's error, % (median over seeds)",
         title="Quality presets: time against accuracy",
     )
+    for axis in (ax.xaxis, ax.yaxis):  # plain numbers on the log axes (not 2 x 10^1)
+        axis.set_major_formatter(ScalarFormatter())
+        axis.set_minor_formatter(ScalarFormatter())
     ax.legend()
     fig.tight_layout()
     save_figure(fig, out)

@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from pydantic import Field, PositiveFloat, PositiveInt
+from scipy.special import ndtri
 
 from ..limits import MAX_SPP
 from ..material import to_physical
@@ -57,11 +58,11 @@ class GNOptions(Options):
     when the phase ends before its `steps` (`window`)."""
     window: Annotated[int, Field(ge=0)] = 0
     """The phase ends (outcome `converged`, its `steps` a limit) once its iterates have settled:
-    over its last `window` steps, every coordinate's net move is within `tolerance` standard
-    errors of its moves' mean from zero (`settled`): they moved less than their step-to-step
-    noise allows. 0: every step runs."""
+    over its last `window` steps no coordinate moved more than its noise would (`settled`).
+    0: every step runs."""
     tolerance: PositiveFloat = 1.0
-    """With `window`: how many standard errors of the mean move count as settled."""
+    """With `window`: the net move that counts as settled, in units of what noise alone gives
+    (`settled`; smaller: stricter)."""
     gradient: Literal["control", "reverse"] = "control"
     """Each step's gradient. `reverse`: the residual `r` of a fresh render times its reverse
     pass (another seed), `J_B^T r`. `control`: the residual's mean over the phase's last steps,
@@ -137,22 +138,27 @@ def _averaged(taken: int, average: float) -> int:
     return round(average * taken)
 
 
-def settled(moves: list, tolerance: float) -> bool:
-    """Whether a phase's last moves (rows, each step's change of the iterate; `GNOptions.window`
-    of them) say its iterates have settled: for every coordinate the moves' mean is within
-    `tolerance` standard errors (their sample sd over the square root of their count) of zero.
-    At the optimum each move is the gradient's noise mapped through the curvature, zero on
-    average; relaxing toward it, the moves point one way and their mean stands out of their
-    noise. A move is `eta` times the Newton step (the estimated way to the optimum), so the
-    mean is the iterates' net move over the window. A step that was rejected (NaN), or fewer
-    than two: not settled."""
-    if len(moves) < 2:
+def settled(iterates: list, tolerance: float = 1.0) -> bool:
+    """Whether a phase's iterates over its last window (rows: the iterate before the window and
+    after each of its steps) have settled: every coordinate's net move over the window is at
+    most `tolerance` times what noise alone gives the largest of them, in units of their own
+    spread. At the optimum the iterates wander around it (`gn`'s steps make them an AR(1)), so
+    a coordinate's net move over a window is its noise, about sqrt(2) times its spread; as they
+    relax the net move grows with the window while the noise does not (a steady drift's net
+    move is sqrt(12) times its window's spread: sqrt(6) in these units). Noise alone gives the
+    largest of P coordinates' |net / (sqrt(2) spread)| about `z_P` half the time (the median of
+    the largest of P |N(0, 1)|), so a phase at its optimum passes each check about half the
+    time whatever P. A rejected step (NaN) in the window, or fewer than three rows: not
+    settled."""
+    if len(iterates) < 3:
         return False
-    x = np.asarray(moves, np.float64)
+    x = np.asarray(iterates, np.float64)
     if not np.all(np.isfinite(x)):
         return False
-    se = x.std(axis=0, ddof=1) / np.sqrt(len(x))
-    return bool(np.all(np.abs(x.mean(axis=0)) <= tolerance * se))
+    net = np.abs(x[-1] - x[0])
+    spread = x.std(axis=0, ddof=1)
+    z_p = float(ndtri(0.5 * (1.0 + 0.5 ** (1.0 / x.shape[1]))))
+    return bool(np.all(net <= tolerance * z_p * np.sqrt(2.0) * spread))
 
 
 class GaussNewton(AbstractSolver):
@@ -229,9 +235,9 @@ class GaussNewton(AbstractSolver):
         # (J_B^T m, r) from one render and its reverse pass
         projected_grad = jax.jit(jax.grad(projected, has_aux=True))
         mean = None if resume is None else resume.get("mean_residual")
-        # every step's iterate after it, (iterate before, gradient) and move: the result averages
-        # the last `average` of the steps taken, `window` tests the last moves
-        history, iterates, pairs, moves, rejected, first = [], [], [], [], 0, 0
+        # every step's iterate after it and (iterate before, gradient): the result averages the
+        # last `average` of the steps taken, `window` tests the last iterates
+        history, iterates, pairs, rejected, first = [], [], [], 0, 0
         model = linear_model(problem, downscale)
         # (image, values, the means of the phase's two series of physical Jacobian renders)
         linear = None
@@ -244,7 +250,6 @@ class GaussNewton(AbstractSolver):
             history, rejected = list(resume["history"]), int(resume["rejected"])
             iterates = list(np.asarray(resume["tail"]))
             pairs = list(np.asarray(resume.get("tail_gradients", [])))
-            moves = list(np.asarray(resume.get("moves", [])))
             if len(resume["leaves"]) == 4:  # the Jacobians in use when the state was offered
                 linear = tuple(np.asarray(leaf, np.float32) for leaf in resume["leaves"])
                 if "constants" in resume:
@@ -291,10 +296,8 @@ class GaussNewton(AbstractSolver):
             new_u = u + delta.astype(np.float32)
             pairs.append(np.concatenate([u, grad]).astype(np.float32))
             if np.all(np.isfinite(new_u)) and np.isfinite(value):
-                moves.append(new_u - u)  # as taken: clipped, in float32
                 u = new_u
             else:
-                moves.append(np.full_like(u, np.nan))
                 rejected += 1
             history.append(value)
             iterates.append(u.copy())
@@ -314,14 +317,13 @@ class GaussNewton(AbstractSolver):
                         "n_averaged": _averaged(len(iterates), options.average),
                         "tail_gradients": pairs,
                         "n_tail_gradients": len(pairs),
-                        "moves": np.asarray(moves[-max(options.window, 1) :], np.float32),
                         "rejected": rejected,
                         "samples": [primal_spp, grad_spp],
                         **({} if mean is None else {"mean_residual": mean}),
                     }
                 )
-            window = options.window
-            if window and len(moves) >= window and settled(moves[-window:], options.tolerance):
+            window, tol = options.window, options.tolerance
+            if window and len(iterates) > window and settled(iterates[-window - 1 :], tol):
                 settled_at = i + 1
                 break
         taken = len(iterates)

@@ -101,11 +101,14 @@ class Phase(BaseModel):
 
 #: The default schedule: Adam with fresh seeds at half resolution and 8 spp is cheap and robust from
 #: far away (its scale-free steps also move a parameter started next to a bound, where the sigmoid
-#: is flat); then the stochastic Gauss-Newton `gn` at full resolution, in two phases: steps of 16
-#: spp relax until their iterates have settled (`window`; at most 56: on the Cycles sphere 14 steps
-#: where 56 ran until 2026-12-05) and the mean of their last half is handed on (their last iterate,
-#: handed on until 2026-12-01, wanders 0.012-0.028 around alpha 0.02 at 16 spp, and the averaged
-#: phase did not relax from it); 8 of 64 spp are averaged, their curvature refreshed twice so
+#: is flat); then the stochastic Gauss-Newton `gn` at full resolution, in two phases: 56 steps of
+#: 16 spp relax and the mean of their last half is handed on (their last iterate, handed on until
+#: 2026-12-01, wanders 0.012-0.028 around alpha 0.02 at 16 spp, and the averaged phase did not
+#: relax from it). They run every step: ended once settled (`GNOptions.window`: 8 and 16 steps),
+#: the Cycles sphere's command took 21 s instead of 41, but from the start at alpha 0.2 the
+#: relaxation toward alpha 0.01-0.02 is slower than its noise near the bound, and the torus ended
+#: +49 to +69 % at alpha 0.01 where all 56 steps end +10 and +11 % (BENCHMARKS, "Quality
+#: presets"). 8 steps of 64 spp are averaged, their curvature refreshed twice so
 #: that the uncertainty takes its Jacobians (as many samples as it rendered itself; 12 steps until
 #: 2026-12-05: BENCHMARKS, "Quality presets"). A gradient's variance falls faster than 1 / spp (8x
 #: for 4x the samples at alpha 0.02; BENCHMARKS, "Fitting: the measurements behind the default"),
@@ -123,7 +126,7 @@ class Phase(BaseModel):
 #: behind the default").
 DEFAULT_SCHEDULE = (
     Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
-    Phase(solver="gn", steps=56, spp=16, jacobian_spp=16, refresh=10, average=0.5, window=8),
+    Phase(solver="gn", steps=56, spp=16, jacobian_spp=16, refresh=10, average=0.5),
     Phase(solver="gn", steps=8, spp=64, jacobian_spp=32, refresh=4, average=1.0),
 )
 
