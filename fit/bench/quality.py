@@ -215,7 +215,7 @@ def quality_table(
 def _plot_trade(done: dict, seeds: int, cases, out: Path) -> None:
     """Each object's presets as time against alpha's error (medians over the seeds, joined in
     order of time), and the tutorial loop's point."""
-    from matplotlib.ticker import ScalarFormatter
+    from matplotlib.ticker import FixedLocator, NullFormatter, ScalarFormatter
 
     from ..output.figures import pyplot, save_figure
 
@@ -242,9 +242,12 @@ def _plot_trade(done: dict, seeds: int, cases, out: Path) -> None:
         ylabel="alpha's error, % (median over seeds)",
         title="Quality presets: time against accuracy",
     )
-    for axis in (ax.xaxis, ax.yaxis):  # plain numbers on the log axes (not 2 x 10^1)
+    # plain numbers on the log axes (not 2 x 10^1), a few of them
+    ax.xaxis.set_major_locator(FixedLocator([5, 10, 20, 50, 100, 200, 500]))
+    ax.yaxis.set_major_locator(FixedLocator([0.1, 0.2, 0.5, 1, 2, 5, 10, 20, 50, 100]))
+    for axis in (ax.xaxis, ax.yaxis):
         axis.set_major_formatter(ScalarFormatter())
-        axis.set_minor_formatter(ScalarFormatter())
+        axis.set_minor_formatter(NullFormatter())
     ax.legend()
     fig.tight_layout()
     save_figure(fig, out)
