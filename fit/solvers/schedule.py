@@ -433,4 +433,5 @@ def run_schedule(
                 # once it is done, the fit is whole and is written
                 stop=None if checkpoint is None else (lambda: checkpoint.stop),
             )
+    result.linearisation = None  # the uncertainty's only: not carried on (a start's Ray result)
     return result
