@@ -20,8 +20,8 @@ parallel test workers ran out of GPU memory).
 
 JAX keeps its compiled solvers in ``$XDG_CACHE_HOME/layerfit/jax`` (``~/.cache``; at most 256 MiB,
 least recently used dropped) unless ``JAX_COMPILATION_CACHE_DIR`` says otherwise (empty: none), as
-Dr.Jit keeps its kernels in ``~/.drjit``: each command compiled them again, 1.8 s of the Cycles
-sphere's 26 s fit command (2-core VM, 2026-12-05).
+Dr.Jit keeps its kernels in ``~/.drjit``: each command compiled them again, 1.8 s a command on
+the Cycles sphere (2-core VM, 2026-12-05).
 """
 
 import os

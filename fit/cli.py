@@ -16,7 +16,7 @@ from captures.errors import InputError
 
 from . import console as ui
 from .errors import OutputError, Stopped
-from .limits import MAX_SEED, MAX_SPP
+from .limits import MAX_SEED, MAX_SPP, QUALITIES
 from .variant import BackendError, VariantError
 
 # rich_markup_mode=None: help texts are plain (a "[truth]" in them is shown, not read as markup)
@@ -58,12 +58,8 @@ Variant = Annotated[
 ]
 
 
-class Quality(enum.StrEnum):
-    """`layerfit fit --quality`: `fit.solvers.schedule.QUALITIES`."""
-
-    draft = "draft"
-    default = "default"
-    best = "best"
+#: `layerfit fit --quality`'s choices
+Quality = enum.StrEnum("Quality", {name: name for name in QUALITIES})
 
 
 Force = Annotated[bool, typer.Option("--force", help="Replace existing outputs.")]

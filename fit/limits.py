@@ -9,3 +9,7 @@ MAX_SEED = 2**32 - 1
 #: benchmarks' rendered targets use at most 16384), while a typo's extra digits are refused
 #: before any work (Mitsuba's own limit, a 32-bit `sample_count`, was an internal error mid-render).
 MAX_SPP = 2**20
+
+#: The quality presets a fit takes (`fit.quality`, `--quality`), from fastest to most accurate;
+#: what each does to a schedule: `fit.solvers.schedule.at_quality`.
+QUALITIES = ("draft", "default", "best")

@@ -92,8 +92,11 @@ def run(
         if value < low or (high is not None and value > high):
             most = "" if high is None else f" and at most {high}"
             raise InputError(f"{option} {value}: give at least {low}{most}")
-    missing = [s for s in SCENES if not s.is_file()]
-    if only in (None, "bsdf", "cup") and missing:
+    from .quality import QUALITY_CASES
+
+    needed = [path for _, path in QUALITY_CASES] if only == "quality" else list(SCENES)
+    missing = [s for s in needed if not s.is_file()]
+    if only in (None, "bsdf", "cup", "quality") and missing:
         raise InputError(
             f"{missing[0]}: not found from {Path.cwd()}; run layerfit bench from the repository "
             "root (it reads the bundled configs)"

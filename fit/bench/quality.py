@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..solvers.schedule import QUALITIES
+from ..limits import QUALITIES
 from .common import Table, complete, constants_digest, machine, resumed
 
 #: The objects of the table: a name and its fit config (read from the working directory).

@@ -35,9 +35,9 @@ from captures.errors import InputError
 from .. import interrupts, timing
 from ..config import FitConfig
 from ..errors import OutputError, Stopped
+from ..limits import QUALITIES
 from ..solvers import Checkpoint, Result, run_schedule
 from ..solvers.base import PhaseReport
-from ..solvers.schedule import QUALITIES
 from .prepare import Prepared, fit_identity, prepare
 from .run_folder import check_free, owned, write_run, writing
 

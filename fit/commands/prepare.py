@@ -412,9 +412,9 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
     else:
         refusal = forward_mode_refusal(problem)
     # the default schedule's phases are named as such, with how to give others
-    given = "" if "phases" in cfg.settings.model_fields_set else " (the default schedule)"
-    if cfg.quality != "default":
-        given += f" (at fit.quality = {cfg.quality!r})"
+    notes = [] if "phases" in cfg.settings.model_fields_set else ["the default schedule"]
+    notes += [f"at fit.quality = {cfg.quality!r}"] if cfg.quality != "default" else []
+    given = f" ({', '.join(notes)})" if notes else ""
     largest, sizes = 0, set()
     for k, phase in enumerate(cfg.phases):  # fail before any work, naming the phase
         if refusal and phase.solver in ("gn", "lm"):
@@ -429,12 +429,15 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
             raise CaptureError(f"{cfg.path}: fit.phases[{k}].downscale{given}: {err}") from None
         h, w = min(v.image.shape[0] for v in views), min(v.image.shape[1] for v in views)
         if min(h, w) < MIN_PIXELS:
-            fix = (
-                "give a smaller factor"
-                if not given
-                else 'give [[fit.phases]] of your own with downscale = 1 (README, "Fitting"), '
-                "or larger views"
-            )
+            if cfg.quality == "draft":  # draft halves the full-resolution phases' resolution
+                fix = 'fit at quality "default" (--quality default), or give larger views'
+            elif not given:
+                fix = "give a smaller factor"
+            else:
+                fix = (
+                    'give [[fit.phases]] of your own with downscale = 1 (README, "Fitting"), '
+                    "or larger views"
+                )
             raise InputError(
                 f"{cfg.path}: fit.phases[{k}].downscale = {phase.downscale}{given} (with "
                 f"fit.downscale = {cfg.downscale}) leaves a {w}x{h} view: at least {MIN_PIXELS} "

@@ -21,10 +21,15 @@ from captures.model import (
 )
 
 from ..errors import ConfigError
-from ..limits import MAX_SEED, MAX_SPP
+from ..limits import MAX_SEED, MAX_SPP, QUALITIES
 from ..material import Material, load_material, read_toml
 from ..material.textures import MAX_TEXELS, with_free_textures
-from ..solvers.schedule import DEFAULT_SCHEDULE, Phase, at_quality, default_schedule
+from ..solvers.schedule import (
+    DEFAULT_SCHEDULE,
+    Phase,
+    at_quality,
+    default_schedule,
+)
 
 
 class RenderSettings(StrictModel):
@@ -112,7 +117,7 @@ class FitSettings(StrictModel):
     phases: list[Phase] = Field(default_factory=lambda: list(DEFAULT_SCHEDULE), min_length=1)
     """The schedule: solver phases run in turn (absent: the default schedule, its first Adam
     steps holding the mask thresholds when any is free)."""
-    quality: Literal["draft", "default", "best"] = "default"
+    quality: Literal[QUALITIES] = "default"
     """Trade time for accuracy: draft halves every phase's steps and fits the full-resolution
     phases at half resolution, best doubles the steps (`fit.solvers.schedule.at_quality`)."""
     starts: PositiveInt = 1

@@ -23,7 +23,7 @@ from captures.errors import InputError
 from captures.model import FieldError
 
 from .. import timing
-from ..limits import MAX_SPP
+from ..limits import MAX_SPP, QUALITIES
 from .base import Options, PhaseReport, Result
 from .checkpoint import Checkpoint
 from .problem import Problem
@@ -105,15 +105,14 @@ class Phase(BaseModel):
 #: 16 spp relax and the mean of their last half is handed on (their last iterate, handed on until
 #: 2026-12-01, wanders 0.012-0.028 around alpha 0.02 at 16 spp, and the averaged phase did not
 #: relax from it). They run every step: ended once settled (`GNOptions.window`: 8 and 16 steps),
-#: the Cycles sphere's command took 21 s instead of 41, but from the start at alpha 0.2 the
+#: the Cycles sphere's command took 21 s instead of 34, but from the start at alpha 0.2 the
 #: relaxation toward alpha 0.01-0.02 is slower than its noise near the bound, and the torus ended
 #: +49 to +69 % at alpha 0.01 where all 56 steps end +10 and +11 % (BENCHMARKS, "Quality
-#: presets"). 8 steps of 64 spp are averaged, their curvature refreshed twice so
-#: that the uncertainty takes its Jacobians (as many samples as it rendered itself; 12 steps until
-#: 2026-12-05: BENCHMARKS, "Quality presets"). A gradient's variance falls faster than 1 / spp (8x
-#: for 4x the samples at alpha 0.02; BENCHMARKS, "Fitting: the measurements behind the default"),
-#: so the average is
-#: best taken over few steps of many samples; relaxing takes steps (24 x 64 spp alone left ior -0.03
+#: presets"). 8 steps of 64 spp are averaged, their curvature refreshed twice so that the
+#: uncertainty takes its Jacobians (as many samples as it rendered itself; 12 steps until
+#: 2026-12-05). A gradient's variance falls faster than 1 / spp (8x for 4x the samples at alpha
+#: 0.02; BENCHMARKS, "Fitting: the measurements behind the default"), so the average is best
+#: taken over few steps of many samples; relaxing takes steps (24 x 64 spp alone left ior -0.03
 #: and -0.11 off at alpha 0.6 and 1, in a low-ior basin). `gn` replaced a second Adam phase (60 x 32
 #: spp, lr 0.02) that could not relax from where the first one left a weakly determined parameter:
 #: alpha 0.02 on a 160x120 sphere ended +12 % for one seed, and +24 to +127 % at alpha 0.01-0.02 on
@@ -146,8 +145,8 @@ TEXTURE_SCHEDULE = (
 #: Quality presets (`fit.quality`, `layerfit fit --quality`), each a change of the schedule (the
 #: default one or a config's own phases): `draft` halves every phase's steps (its limit, for a
 #: phase that ends when it settles) and renders the full-resolution phases at half resolution;
-#: `best` doubles every phase's steps. Their time and error: BENCHMARKS, "Quality presets".
-QUALITIES = ("draft", "default", "best")
+#: `best` doubles every phase's steps (`QUALITIES`). Their time and error: BENCHMARKS, "Quality
+#: presets".
 
 
 def at_quality(phases, quality: str = "default") -> tuple[Phase, ...]:
@@ -329,7 +328,8 @@ def run_schedule(
         phase = phases[k]
         in_phase = saved if saved is not None and k == first and "step" in saved else None
         if k == smooth_before and in_phase is None:  # resumed inside it: u_phase is smoothed
-            smoothed = smooth_textures(problem, u, TEXTURE_SPP, seed + smooth_before)
+            with timing.timed("texture smoothing"):
+                smoothed = smooth_textures(problem, u, TEXTURE_SPP, seed + smooth_before)
             u = smoothed.u
         stamps: list[float] = []  # the first step's end: the renders recorded, compiled
 

@@ -276,3 +276,22 @@ def test_quality_table_compares_whole_commands_with_the_loop(tmp_path, monkeypat
     assert table["interpreter, imports, exit (the rest)"] == ["20.00", "17.00"]
     quality.quality_table(3, tmp_path / "q.json", cases=cases)
     assert len(ran) == 22  # all read back
+
+
+def test_draft_on_views_too_small_to_halve_names_the_quality(tmp_path):
+    """Views that half resolution would take under the smallest side are refused before any
+    render, naming the phase, the quality and the fix; no run folder is left behind."""
+    from test_fit_cli import CONFIG, small_capture
+
+    from fit.commands.fit import fit
+
+    small_capture(tmp_path / "cap", views=1, spp=16, size=(8, 6))
+    (tmp_path / "fit.toml").write_text(
+        CONFIG + '[[fit.phases]]\nsolver = "adam"\nsteps = 2\nspp = 4\nlr = 0.1\n'
+    )
+    with pytest.raises(InputError) as err:
+        fit(tmp_path / "fit.toml", tmp_path / "run", quality="draft")
+    message = str(err.value)
+    assert "fit.phases[0].downscale = 2 (at fit.quality = 'draft')" in message
+    assert "leaves a 4x3 view" in message and "--quality default" in message
+    assert not (tmp_path / "run").exists()
