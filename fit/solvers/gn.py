@@ -16,7 +16,14 @@ from ..material import to_physical
 from .adam import averaged_result
 from .base import AbstractSolver, Options, Outcome, Result
 from .problem import jax_seed, noise_ratio, residuals
-from .uncertainty import CROSS_SEED_OFFSET, linear_model, refuse_forward_mode
+from .uncertainty import (
+    CROSS_SEED_OFFSET,
+    averaging_covariance,
+    cross_product,
+    inverse_determined,
+    linear_model,
+    refuse_forward_mode,
+)
 
 
 class GNOptions(Options):
@@ -63,6 +70,14 @@ class GNOptions(Options):
     tolerance: PositiveFloat = 1.0
     """With `window`: the net move that counts as settled, in units of what noise alone gives
     (`settled`; smaller: stricter)."""
+    precision: float = Field(0.0, ge=0.0, lt=1.0)
+    """With `precision` > 0 the phase goes on past `steps`, `refresh` steps at a time up to
+    `max_steps`, until its averaged answer's Monte Carlo standard deviation (from its steps'
+    fresh-seed gradients, as the uncertainty takes it: `averaging_covariance`) is at most this
+    share of every material value (of a tenth of its range, for a value nearer zero than that):
+    a glossy lobe's noise decides how long it averages (`imprecise`). 0: `steps` steps."""
+    max_steps: PositiveInt | None = None
+    """With `precision`: the most steps (absent: `steps`)."""
     gradient: Literal["control", "reverse"] = "control"
     """Each step's gradient. `reverse`: the residual `r` of a fresh render times its reverse
     pass (another seed), `J_B^T r`. `control`: the residual's mean over the phase's last steps,
@@ -131,6 +146,38 @@ def _curvature(j1: np.ndarray, j2: np.ndarray) -> np.ndarray:
     scale = np.ones_like(diagonal)
     scale[ok] = np.sqrt(np.clip(cautious[ok], lowest[ok], diagonal[ok]) / diagonal[ok])
     return plain * np.outer(scale, scale)
+
+
+def imprecise(problem, tail, gradients, jac1, jac2, precision: float) -> list[str]:
+    """The free keys whose averaged answer's Monte Carlo standard deviation exceeds `precision`
+    of their value (of a tenth of their range where the value is nearer zero; of the value for
+    scale factors), from the averaged steps' iterates and fresh-seed gradients (`tail`,
+    `gradients`: rows) and the phase's two Jacobians in the solver's space (`averaging_covariance`
+    with their cross curvature). Fewer than 3 steps: every key."""
+    tail, gradients = np.asarray(tail, np.float64), np.asarray(gradients, np.float64)
+    finite = np.all(np.isfinite(tail), axis=1) & np.all(np.isfinite(gradients), axis=1)
+    tail, gradients = tail[finite], gradients[finite]
+    if len(tail) < 3:
+        return [f.key for f in problem.free]
+    u = tail.mean(axis=0)
+    h = cross_product(jac1, jac2)
+    inverse, _ = inverse_determined(h)
+    cov = averaging_covariance(tail, gradients, u, h, inverse)
+    n = problem.n_material
+    x = np.asarray(to_physical(problem.free, u[:n]), np.float64)
+    slope = np.asarray(
+        jax.jacfwd(lambda v: to_physical(problem.free, v, jnp))(jnp.asarray(u[:n], jnp.float32)),
+        np.float64,
+    )
+    sd = np.sqrt(np.clip(np.diag(slope @ cov[:n, :n] @ slope.T), 0.0, None))
+    out, i = [], 0
+    for f in problem.free:
+        part = slice(i, i + f.size)
+        i += f.size
+        floor = 0.0 if f.spec.transform == "log_sigmoid" else 0.1 * (f.spec.upper - f.spec.lower)
+        if np.any(sd[part] > precision * np.maximum(np.abs(x[part]), floor)):
+            out.append(f.key)
+    return out
 
 
 def _averaged(taken: int, average: float) -> int:
@@ -254,8 +301,9 @@ class GaussNewton(AbstractSolver):
                 linear = tuple(np.asarray(leaf, np.float32) for leaf in resume["leaves"])
                 if "constants" in resume:
                     constants = np.asarray(resume["constants"], np.float32)
-        settled_at = None
-        for i in range(first, steps):
+        settled_at, noisy = None, []
+        limit = max(steps, options.max_steps or steps) if options.precision else steps
+        for i in range(first, limit):
             step_seed = seed * 100003 + i + 1
             if linear is None or i % options.refresh == 0:
                 # Two Jacobians of half the samples each (independent seeds), each averaged
@@ -326,6 +374,15 @@ class GaussNewton(AbstractSolver):
             if window and len(iterates) > window and settled(iterates[-window - 1 :], tol):
                 settled_at = i + 1
                 break
+            at_check = (i + 1 - steps) % options.refresh == 0 or i + 1 == limit
+            if options.precision and i + 1 >= steps and at_check:
+                n = _averaged(len(iterates), options.average)
+                rows = np.asarray(pairs[len(pairs) - n :], np.float64)
+                noisy = imprecise(
+                    problem, rows[:, : len(u)], rows[:, len(u) :], jac1, jac2, options.precision
+                )
+                if not noisy:
+                    break
         taken = len(iterates)
         n = _averaged(taken, options.average)
         tail = iterates[taken - n :] if n else []
@@ -335,6 +392,11 @@ class GaussNewton(AbstractSolver):
             report.outcome = Outcome.CONVERGED
             said = f"settled after {settled_at} of {steps} steps"
             report.message = f"{said}; {report.message}" if report.message else said
+        if options.precision and (taken > steps or noisy):
+            said = f"averaged {taken} steps for a Monte Carlo sd within {options.precision:.3g}"
+            if noisy:
+                said += f"; {', '.join(noisy)} still noisier at max_steps"
+            note = f"{said}; {note}" if note else said
         if note:
             report.message = f"{report.message}; {note}" if report.message else note
         if constants is not None and taken:
