@@ -74,8 +74,9 @@ class GNOptions(Options):
     """With `precision` > 0 the phase goes on past `steps`, `refresh` steps at a time up to
     `max_steps`, until its averaged answer's Monte Carlo standard deviation (from its steps'
     fresh-seed gradients, as the uncertainty takes it: `averaging_covariance`) is at most this
-    share of every material value (of a tenth of its range, for a value nearer zero than that):
-    a glossy lobe's noise decides how long it averages (`imprecise`). 0: `steps` steps."""
+    share of every material value (`precision_scale`: of the value where it is bounded away from
+    zero, else of the range): a glossy lobe's noise decides how long it averages (`imprecise`).
+    0: `steps` steps."""
     max_steps: PositiveInt | None = None
     """With `precision`: the most steps (absent: `steps`)."""
     gradient: Literal["control", "reverse"] = "control"
@@ -148,12 +149,20 @@ def _curvature(j1: np.ndarray, j2: np.ndarray) -> np.ndarray:
     return plain * np.outer(scale, scale)
 
 
+def precision_scale(spec, x: np.ndarray) -> np.ndarray:
+    """What `GNOptions.precision` is a share of: the value itself for a quantity bounded away
+    from zero (alpha, ior, scale factors: their errors are relative), else the range (colours,
+    sigma, whose zero is a value like any other)."""
+    if spec.lower > 0:
+        return np.abs(x)
+    return np.full_like(x, spec.upper - spec.lower)
+
+
 def imprecise(problem, tail, gradients, jac1, jac2, precision: float) -> list[str]:
     """The free keys whose averaged answer's Monte Carlo standard deviation exceeds `precision`
-    of their value (of a tenth of their range where the value is nearer zero; of the value for
-    scale factors), from the averaged steps' iterates and fresh-seed gradients (`tail`,
-    `gradients`: rows) and the phase's two Jacobians in the solver's space (`averaging_covariance`
-    with their cross curvature). Fewer than 3 steps: every key."""
+    of their `precision_scale`, from the averaged steps' iterates and fresh-seed gradients
+    (`tail`, `gradients`: rows) and the phase's two Jacobians in the solver's space
+    (`averaging_covariance` with their cross curvature). Fewer than 3 steps: every key."""
     tail, gradients = np.asarray(tail, np.float64), np.asarray(gradients, np.float64)
     finite = np.all(np.isfinite(tail), axis=1) & np.all(np.isfinite(gradients), axis=1)
     tail, gradients = tail[finite], gradients[finite]
@@ -174,8 +183,7 @@ def imprecise(problem, tail, gradients, jac1, jac2, precision: float) -> list[st
     for f in problem.free:
         part = slice(i, i + f.size)
         i += f.size
-        floor = 0.0 if f.spec.transform == "log_sigmoid" else 0.1 * (f.spec.upper - f.spec.lower)
-        if np.any(sd[part] > precision * np.maximum(np.abs(x[part]), floor)):
+        if np.any(sd[part] > precision * precision_scale(f.spec, x[part])):
             out.append(f.key)
     return out
 

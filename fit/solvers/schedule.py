@@ -101,32 +101,31 @@ class Phase(BaseModel):
 
 #: The default schedule: Adam with fresh seeds at half resolution and 8 spp is cheap and robust from
 #: far away (its scale-free steps also move a parameter started next to a bound, where the sigmoid
-#: is flat); then the stochastic Gauss-Newton `gn` at full resolution, in two phases: 56 steps of
-#: 16 spp relax and the mean of their last half is handed on (their last iterate, handed on until
-#: 2026-12-01, wanders 0.012-0.028 around alpha 0.02 at 16 spp, and the averaged phase did not
-#: relax from it). They run every step: ended once settled (`GNOptions.window`: 8 and 16 steps),
-#: the Cycles sphere's command took 21 s instead of 34, but from the start at alpha 0.2 the
-#: relaxation toward alpha 0.01-0.02 is slower than its noise near the bound, and the torus ended
-#: +49 to +69 % at alpha 0.01 where all 56 steps end +10 and +11 % (BENCHMARKS, "Quality
-#: presets"). 8 steps of 64 spp are averaged, their curvature refreshed twice so that the
-#: uncertainty takes its Jacobians (as many samples as it rendered itself; 12 steps until
-#: 2026-12-05). A gradient's variance falls faster than 1 / spp (8x for 4x the samples at alpha
-#: 0.02; BENCHMARKS, "Fitting: the measurements behind the default"), so the average is best
-#: taken over few steps of many samples; relaxing takes steps (24 x 64 spp alone left ior -0.03
-#: and -0.11 off at alpha 0.6 and 1, in a low-ior basin). `gn` replaced a second Adam phase (60 x 32
-#: spp, lr 0.02) that could not relax from where the first one left a weakly determined parameter:
-#: alpha 0.02 on a 160x120 sphere ended +12 % for one seed, and +24 to +127 % at alpha 0.01-0.02 on
-#: 96x72 (BENCHMARKS, "Fitting: the measurements behind the default"). With one `gn` phase of 40
-#: steps the Cycles sphere's alpha came out -2.3 and -2.9 % (the target: 2 %), with 80 +0.8 % (one
-#: run, 66 s of fit). The averaged phase keeps one sample count: `primal_spp = "auto"` there (256 /
-#: 16 against clean targets) gave sharper answers whose reported sd no longer covered them (the
-#: recovery sweep: 146 of 150 errors within 3 sd, was 150; with the per-pixel meat 149 of 150 and 25
-#: of 30 cases within targets against this schedule's 26; BENCHMARKS, "Fitting: the measurements
-#: behind the default").
+#: is flat); then the stochastic Gauss-Newton `gn` at full resolution, in two phases. 56 steps of
+#: 16 spp relax, and the mean of their last half is handed on (a single iterate wanders 0.012-0.028
+#: around alpha 0.02 at 16 spp). They run every step: ended once settled (`GNOptions.window`), the
+#: relaxation toward alpha 0.01-0.02 from a start at 0.2 stopped early (the torus at alpha 0.01
+#: ended +49 to +69 % against +10 % with all 56 steps). Then steps of 64 spp are averaged, their
+#: curvature refreshed every 4 so that the uncertainty takes its Jacobians: 8 steps, and more (up
+#: to 32) until the average's Monte Carlo sd is within 1.5 % of every value (`precision`): a glossy
+#: lobe's noise decides (the Cycles torus at alpha 0.04 took 28-32 steps and ended within 3.3 %,
+#: where 8 steps ended +5.3, -5.3 and +5.8 % on seeds 0-2). A gradient's variance falls faster than
+#: 1 / spp (8x for 4x the samples at alpha 0.02), so the average is taken over steps of many
+#: samples; relaxing takes steps. Measurements: BENCHMARKS, "Fitting: the measurements behind the
+#: default" and "Low alpha".
 DEFAULT_SCHEDULE = (
     Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
     Phase(solver="gn", steps=56, spp=16, jacobian_spp=16, refresh=10, average=0.5),
-    Phase(solver="gn", steps=8, spp=64, jacobian_spp=32, refresh=4, average=1.0),
+    Phase(
+        solver="gn",
+        steps=8,
+        spp=64,
+        jacobian_spp=32,
+        refresh=4,
+        average=1.0,
+        precision=0.015,
+        max_steps=32,
+    ),
 )
 
 
@@ -158,11 +157,16 @@ def at_quality(phases, quality: str = "default") -> tuple[Phase, ...]:
     out = []
     for phase in phases:
         fields = phase.model_dump()  # its options too (extra fields), validated again below
+        limit = fields.get("max_steps")
         if quality == "draft":
             fields["steps"] = max(1, -(-phase.steps // 2))
             fields["downscale"] = 2 if phase.downscale == 1 else phase.downscale
+            if limit:
+                fields["max_steps"] = max(1, -(-limit // 2))
         else:
             fields["steps"] = 2 * phase.steps
+            if limit:
+                fields["max_steps"] = 2 * limit
         out.append(Phase(**fields))
     return tuple(out)
 

@@ -80,8 +80,9 @@ def test_a_windowed_phase_ends_when_settled_at_the_optimum(problem, monkeypatch)
 
 
 def test_quality_presets_change_every_phase():
-    """draft: half the steps (rounded up), the full-resolution phases at half resolution;
-    best: twice the steps; default: the phases as they are; their options kept."""
+    """draft: half the steps and step limits (rounded up), the full-resolution phases at half
+    resolution; best: twice the steps and limits; default: the phases as they are; their
+    other options kept."""
     assert at_quality(DEFAULT_SCHEDULE) == DEFAULT_SCHEDULE
     draft = at_quality(DEFAULT_SCHEDULE, "draft")
     best = at_quality(DEFAULT_SCHEDULE, "best")
@@ -89,7 +90,13 @@ def test_quality_presets_change_every_phase():
         assert d.steps == -(-phase.steps // 2) and b.steps == 2 * phase.steps
         assert d.downscale == (2 if phase.downscale == 1 else phase.downscale)
         assert b.downscale == phase.downscale
-        assert d.options == b.options == phase.options
+        limit = getattr(phase.options, "max_steps", None)
+        if limit:
+            assert d.options.max_steps == -(-limit // 2) and b.options.max_steps == 2 * limit
+        same = phase.options.model_dump(exclude={"max_steps"})
+        for changed in (d, b):
+            assert changed.options.model_dump(exclude={"max_steps"}) == same
+    assert any(getattr(p.options, "max_steps", None) for p in DEFAULT_SCHEDULE)  # checked above
     odd = (Phase(solver="adam", steps=1, spp=4, downscale=3, lr=0.2),)
     assert at_quality(odd, "draft")[0].steps == 1 and at_quality(odd, "draft")[0].downscale == 3
     with pytest.raises(ValueError, match="choose one of draft, default, best"):
