@@ -24,6 +24,8 @@ fov_x_deg = 39.6
 "glaze.roughness" = 0.0625
 [truth_options]              # the options the truth's values mean something under
 "glaze.diffuse" = "qualitative"
+[truth_textures]             # true textures (files in the folder): fitted masks are scored
+"glaze.mask.texture" = "truth_glaze.mask.texture.exr"
 ```
 """
 
@@ -97,6 +99,8 @@ class Capture:
     truth_options: dict[str, str] = field(default_factory=dict)
     """The options of the model the truth holds values of, by key (`glaze.diffuse = "eon"`: a
     peer's diffuse roughness is EON's): a fit whose material differs does not score them."""
+    truth_textures: dict[str, Path] = field(default_factory=dict)
+    """The true textures of a synthetic capture by key (a mask's painted texture), as files."""
 
     def scene_of(self, view: int) -> Scene:
         """The scene as seen by one view (its camera; its own lights if it has them)."""
@@ -269,6 +273,9 @@ class Manifest(StrictModel):
     truth_options: dict[str, str] = Field(default_factory=dict)
     """The options of the model the truth's values belong to (`"glaze.diffuse" = "eon"`: its
     sigma is EON's roughness): a fit with another option does not score those values."""
+    truth_textures: dict[str, FileInFolder] = Field(default_factory=dict)
+    """Synthetic captures only: the true textures by key (`"glaze.mask.texture" =
+    "truth_glaze_mask.exr"`, inside the folder), to score fitted masks (`mask_iou`)."""
 
     @model_validator(mode="after")
     def _complete(self):
@@ -358,7 +365,13 @@ def load_capture(path: str | Path) -> Capture:
         log.warning(message)
     warnings += getattr(scene.geometry, "warnings", ())  # the mesh's, said as it was read
     capture = Capture(
-        scene, views, dict(manifest.truth), path, warnings, dict(manifest.truth_options)
+        scene,
+        views,
+        dict(manifest.truth),
+        path,
+        warnings,
+        dict(manifest.truth_options),
+        {k: Path(v).resolve() for k, v in manifest.truth_textures.items()},
     )
     capture.check_factor(settings.downscale, f"{path}: capture.downscale")
     return capture.downscaled(settings.downscale)
@@ -397,6 +410,7 @@ def manifest_text(
     views: list[dict],
     truth: dict,
     truth_options: dict | None = None,
+    truth_textures: dict | None = None,
 ) -> str:
     """The TOML text of a manifest (flat values, nested tables one level deep)."""
     lines = ["# layerfit capture manifest", "", "[capture]"]
@@ -427,4 +441,7 @@ def manifest_text(
     if truth_options:
         lines += ["", "[truth_options]"]
         lines += [f'"{k}" = {_toml_value(v)}' for k, v in truth_options.items()]
+    if truth_textures:
+        lines += ["", "[truth_textures]"]
+        lines += [f'"{k}" = {_toml_value(str(v))}' for k, v in truth_textures.items()]
     return "\n".join(lines) + "\n"

@@ -108,6 +108,21 @@ def write_run(
             textures,
         )
     shown = masks(fitted_material)
+    true_material = truth_material(cfg.material, capture)
+    if true_material is not None:  # fitted and true masks side by side, scored where seen
+        from ..render import seen_texels
+
+        true_masks = masks(true_material)
+        layers = fitted_material.bsdf["layers"].split(",")
+        height, width = next(iter(shown.values())).shape
+        seen = seen_texels(capture.scene, width, height)
+        iou = summary["mask_iou"] = mask_iou(shown, true_masks, layers, seen)
+        beside = {}
+        for key, texels in shown.items():
+            beside[key] = texels
+            layer = key.removesuffix(".mask")
+            beside[f"{key}: truth (seen share's IoU {iou[layer]:.2f})"] = true_masks[key]
+        shown = beside
     for key, texels in textures.items():
         shown[key] = texels if texels.shape[-1] == 3 else texels[..., 0]
         if key in (result.texture_std or {}):
@@ -183,6 +198,43 @@ def _panels(cfg, capture, held, problem, result) -> list[ViewPanel]:
         )
         panels.append(ViewPanel(view.name, view.image, render, view.weight, i in held, rmse))
     return panels
+
+
+def truth_material(material, capture):
+    """`material` at the capture's truth, its masks' painted textures the truth's
+    (`Capture.truth_textures`), or None where the truth holds no texture of this material's."""
+    files = {k: v for k, v in capture.truth_textures.items() if k in material.texture_files()}
+    if not files:
+        return None
+    return material.with_values(capture.truth).with_textures(files)
+
+
+def shares(baked: dict[str, np.ndarray], layers: list[str]) -> dict[str, np.ndarray]:
+    """Each masked layer's share of the surface (`<name>.mask` -> texels) from its baked mask
+    (`masks`), as the layered material picks layers: a layer's mask times one minus each mask
+    above it (what of it the photographs can see)."""
+    out, above = {}, None
+    for name in reversed(layers[1:]):
+        mask = baked[f"{name}.mask"]
+        out[name] = mask if above is None else mask * above
+        above = (1.0 - mask) if above is None else above * (1.0 - mask)
+    return out
+
+
+#: A layer is present where its share exceeds this (`mask_iou`).
+MASK_LEVEL = 0.5
+
+
+def mask_iou(fitted: dict, true: dict, layers: list[str], seen: np.ndarray) -> dict[str, float]:
+    """Layer name -> intersection over union of where the fitted and the true masks (baked,
+    `masks`) give the layer a share above `MASK_LEVEL`, over the texels the views see."""
+    a, b = shares(fitted, layers), shares(true, layers)
+    out = {}
+    for name in a:
+        fit_on, true_on = (a[name] > MASK_LEVEL) & seen, (b[name] > MASK_LEVEL) & seen
+        union = np.count_nonzero(fit_on | true_on)
+        out[name] = float(np.count_nonzero(fit_on & true_on) / union) if union else 1.0
+    return out
 
 
 def masks(material) -> dict[str, np.ndarray]:

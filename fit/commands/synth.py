@@ -113,8 +113,21 @@ def synthesize(
             views,
             material.values(),
             lobes,
+            _truth_textures(material, staging),
         )
         (staging / "capture.toml").write_text(text, encoding="utf-8")
+    return out
+
+
+def _truth_textures(material, folder: Path) -> dict[str, str]:
+    """The material's masks' painted textures copied into the capture `folder` (a fitted mask
+    is scored against them: `mask_iou`), by key: file name."""
+    out = {}
+    for key, param in material.params.items():
+        if key.endswith(".mask.texture") and param.texture is not None:
+            name = f"truth_{key}{Path(param.texture).suffix}"
+            shutil.copy(param.texture, folder / name)
+            out[key] = name
     return out
 
 

@@ -75,7 +75,7 @@ def with_free_textures(material: Material, sizes: dict[str, tuple[int, int]]) ->
     for key, size in sizes.items():
         texels = start_texels(material, key, size)
         slot, name = _slot(table, material, key)
-        slot[name] = str(cached_texture(texels))
+        slot[name] = str(cached_texture(texels, key))
     built = build_material(table, "<material with free textures>")
     assert built is not None
     return built
@@ -90,13 +90,16 @@ def _slot(table: dict, material: Material, text: str) -> tuple[dict, str]:
     return (layer.setdefault("mask", {}) if k.mask else layer), k.name
 
 
-def cached_texture(texels: np.ndarray) -> Path:
-    """A float EXR of `texels` in the temporary folder, named by their content (written once;
-    `write_image` is atomic, so processes writing it at once leave one whole file)."""
+def cached_texture(texels: np.ndarray, key: str) -> Path:
+    """A float EXR of `texels` in the temporary folder, named by their content and the key they
+    are the texture of (written once; `write_image` is atomic, so processes writing it at once
+    leave one whole file). Two keys never share a file: Mitsuba loads bitmaps of one file as one
+    object, and a second mask starting from the same texels would have no texels of its own."""
     from captures.images import write_image
 
     digest = hashlib.sha1(texels.astype(np.float32).tobytes())
     digest.update(repr(texels.shape).encode())
+    digest.update(key.encode())
     folder = Path(tempfile.gettempdir()) / "layerfit-textures"
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{digest.hexdigest()[:20]}.exr"

@@ -2,7 +2,7 @@
 the `Renderer` of a capture's views (render, VJP, Jacobian) and the one JAX <-> Dr.Jit bridge.
 Import after the Mitsuba variant is chosen (`fit.variant.select_variant`)."""
 
-from .bake import bake_texture
+from .bake import bake_texture, seen_texels
 from .bridge import make_render
 from .image import render
 from .renderer import GRAD_SEED_OFFSET, Renderer
@@ -19,4 +19,5 @@ __all__ = [
     "material_keys",
     "render",
     "scene_dict",
+    "seen_texels",
 ]

@@ -36,3 +36,30 @@ def bake_texture(texture: dict, width: int = 256, height: int = 256) -> np.ndarr
         values = np.asarray(loaded.eval_1(si), np.float32).reshape(-1, width)
         out[first : first + len(values)] = values
     return out
+
+
+def seen_texels(scene, width: int, height: int, supersample: int = 2) -> np.ndarray:
+    """Which texels of a width x height UV grid (laid out as `bake_texture`'s) the scene's
+    cameras see: (height, width) booleans, a texel seen where a ray through a pixel (on a
+    `supersample` x `supersample` grid in each) first meets the object from its front, through
+    one bare scene of the object (lights left out, as `trace_silhouettes`)."""
+    from .scene import bounding_sphere, geometry_dict, load_scene, sensor_dict
+
+    bounds = bounding_sphere(scene.geometry)
+    sensors = {f"sensor_{k:04d}": sensor_dict(c, 1, bounds) for k, c in enumerate(scene.cameras)}
+    bare = geometry_dict(scene, mi.load_dict({"type": "diffuse"}))
+    loaded = load_scene({"type": "scene", "object": bare, **sensors})
+    seen = np.zeros((height, width), bool)
+    for camera, sensor in zip(scene.cameras, loaded.sensors(), strict=True):
+        nx, ny = camera.width * supersample, camera.height * supersample
+        x, y = np.meshgrid((np.arange(nx) + 0.5) / nx, (np.arange(ny) + 0.5) / ny)
+        position = mi.Point2f(x.ravel().astype(np.float32), y.ravel().astype(np.float32))
+        ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5))
+        si = loaded.ray_intersect(ray)
+        front = np.asarray(si.is_valid()) & (np.asarray(si.wi.z) > 0)
+        uv = np.asarray(si.uv)
+        u, v = uv[0][front] % 1.0, uv[1][front] % 1.0
+        cols = np.minimum((u * width).astype(int), width - 1)
+        rows = np.minimum((v * height).astype(int), height - 1)
+        seen[rows, cols] = True
+    return seen

@@ -199,7 +199,7 @@ class Problem:
                 "textures with adam phases only"
             )
         files = {
-            f.key: cached_texture(np.asarray(values[f.key], np.float32).reshape(f.shape))
+            f.key: cached_texture(np.asarray(values[f.key], np.float32).reshape(f.shape), f.key)
             for f in self.free
             if f.shape
         }

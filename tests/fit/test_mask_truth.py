@@ -1,0 +1,108 @@
+"""Fitted masks scored against a synthetic capture's true ones: `synth` keeps the truth's painted
+mask textures (`[truth_textures]`), the views' seen texels, each layer's share and `mask_iou`."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from captures.capture import load_capture
+from captures.images import read_image
+from fit.commands.run_folder import mask_iou, masks, shares, truth_material
+from fit.commands.synth import synthesize
+from fit.config import load_render_config
+from fit.render import seen_texels
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def cup_capture(tmp_path_factory):
+    """The paper's cup (configs/cup.toml) seen by two small cameras from opposite sides."""
+    cfg = load_render_config(ROOT / "configs" / "cup.toml")
+    camera = dataclasses.replace(cfg.scene.cameras[0], width=48, height=42)
+    opposite = dataclasses.replace(
+        camera, origin=tuple(-c if i < 2 else c for i, c in enumerate(camera.origin))
+    )
+    scene = dataclasses.replace(cfg.scene, cameras=(camera, opposite))
+    out = synthesize(scene, cfg.material, tmp_path_factory.mktemp("cup") / "cap", spp=2)
+    return cfg.material, load_capture(out), out
+
+
+def test_synth_keeps_the_truths_mask_textures(cup_capture):
+    """Each mask's painted texture is copied into the capture and named under
+    `[truth_textures]`; loading the capture gives its files, the same texels as the config's."""
+    material, capture, out = cup_capture
+    assert "[truth_textures]" in (out / "capture.toml").read_text()
+    painted = {k: p.texture for k, p in material.params.items() if k.endswith(".mask.texture")}
+    assert (
+        set(capture.truth_textures)
+        == set(painted)
+        == {
+            "glaze.mask.texture",
+            "lime.mask.texture",
+            "stain.mask.texture",
+        }
+    )
+    for key, source in painted.items():
+        copied = capture.truth_textures[key]
+        assert copied.parent == out.resolve()
+        np.testing.assert_array_equal(read_image(copied), read_image(source))
+
+
+def test_seen_texels_are_those_the_cameras_face(cup_capture):
+    """Each camera sees part of the cup's UV square; the opposite camera adds texels of its
+    own, and two cameras see more than either."""
+    _, capture, _ = cup_capture
+    both = seen_texels(capture.scene, 64, 32)
+    one = seen_texels(dataclasses.replace(capture.scene, cameras=capture.scene.cameras[:1]), 64, 32)
+    other = seen_texels(
+        dataclasses.replace(capture.scene, cameras=capture.scene.cameras[1:]), 64, 32
+    )
+    assert 0.05 < one.mean() < 0.8 and 0.05 < other.mean() < 0.8
+    np.testing.assert_array_equal(both, one | other)
+    assert (other & ~one).mean() > 0.05
+
+
+def test_shares_follow_the_stack():
+    """A layer's share is its mask times one minus every mask above it."""
+    top, middle = np.array([[0.0, 1.0, 0.6]]), np.array([[1.0, 1.0, 0.5]])
+    out = shares({"mid.mask": middle, "top.mask": top}, ["base", "mid", "top"])
+    np.testing.assert_allclose(out["top"], top)
+    np.testing.assert_allclose(out["mid"], [[1.0, 0.0, 0.2]])
+
+
+def test_mask_iou_is_one_at_the_truth_and_falls_as_a_threshold_moves(cup_capture):
+    """The truth against itself scores 1 for every layer; the stain's threshold moved (the top
+    layer) scores the stain far lower, the layers below only where it covers them."""
+    material, capture, _ = cup_capture
+    true = truth_material(material, capture)
+    layers = true.bsdf["layers"].split(",")
+    baked = masks(true)
+    height, width = baked["glaze.mask"].shape
+    seen = seen_texels(capture.scene, width, height)
+    assert mask_iou(baked, baked, layers, seen) == {"glaze": 1.0, "lime": 1.0, "stain": 1.0}
+    moved = masks(
+        true.with_values({"stain.mask.threshold": capture.truth["stain.mask.threshold"] - 0.08})
+    )
+    iou = mask_iou(moved, baked, layers, seen)
+    assert iou["stain"] < 0.9 < min(iou["lime"], iou["glaze"])  # they change under the stain
+
+
+def test_masks_from_one_flat_start_each_have_their_own_texels():
+    """configs/cup-masks-fit.toml frees three masks from the same flat start: each gets its own
+    file (Mitsuba loads bitmaps of one file as one object: the second and third masks had no
+    texels to fit), and every view's scene has all three."""
+    from fit.commands.prepare import prepare
+    from fit.config import load_fit_config
+
+    cfg = load_fit_config(ROOT / "configs" / "cup-masks-fit.toml")
+    files = cfg.material.texture_files()
+    keys = ["glaze.mask.texture", "lime.mask.texture", "stain.mask.texture"]
+    assert len({files[k] for k in keys}) == 3
+    renderer = prepare(cfg, trace=False).problem.renderer(2)
+    for group in renderer.groups:
+        assert len(group.targets) == len(cfg.free)
