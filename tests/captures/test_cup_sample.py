@@ -37,3 +37,14 @@ def test_the_main_job_frees_only_what_the_capture_knows():
     free = tomllib.loads((ROOT / "configs" / "cup-fit.toml").read_text())["fit"]["free"]
     truth = open_capture(SAMPLE).truth
     assert set(free) <= set(truth), set(free) - set(truth)
+
+
+def test_the_cup_capture_holds_the_masks_it_was_rendered_with():
+    """`[truth_textures]`: the painted masks of configs/cup.toml, which `mask_iou` scores the
+    fitted masks against (configs/cup-masks-fit.toml frees them)."""
+    truth = open_capture(SAMPLE).truth_textures
+    assert set(truth) == {"glaze.mask.texture", "lime.mask.texture", "stain.mask.texture"}
+    for key, path in truth.items():
+        painted = ROOT / "configs" / "textures" / f"{key.split('.')[0]}.exr"
+        read = [oiio.ImageBuf(str(p)).get_pixels(oiio.FLOAT) for p in (path, painted)]
+        np.testing.assert_array_equal(*read)
