@@ -275,7 +275,7 @@ class Manifest(StrictModel):
     sigma is EON's roughness): a fit with another option does not score those values."""
     truth_textures: dict[str, FileInFolder] = Field(default_factory=dict)
     """Synthetic captures only: the true textures by key (`"glaze.mask.texture" =
-    "truth_glaze_mask.exr"`, inside the folder), to score fitted masks (`mask_iou`)."""
+    "truth_glaze.mask.texture.exr"`, inside the folder), to score fitted masks (`mask_iou`)."""
 
     @model_validator(mode="after")
     def _complete(self):

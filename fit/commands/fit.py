@@ -299,7 +299,10 @@ def _fit_timed(cfg, config, out, resume, holdout, starts, variant, progress, giv
         return run_fit(
             cfg,
             out,
-            lambda k, n, loss: progress.update(tasks[k], completed=n),
+            # a phase may average past its steps (`precision`): its bar grows with it
+            lambda k, n, loss: progress.update(
+                tasks[k], completed=n, total=max(n, phases[k].steps)
+            ),
             resume,
             holdout,
             prepared,

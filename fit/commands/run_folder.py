@@ -202,7 +202,9 @@ def _panels(cfg, capture, held, problem, result) -> list[ViewPanel]:
 
 def truth_material(material, capture):
     """`material` at the capture's truth, its masks' painted textures the truth's
-    (`Capture.truth_textures`), or None where the truth holds no texture of this material's."""
+    (`Capture.truth_textures`), or None where the truth holds no texture of this material's.
+    The masks' structure (each fbm's scale, octaves and seed) is the material's own: a config
+    whose masks are built otherwise than the capture's is scored against other masks."""
     files = {k: v for k, v in capture.truth_textures.items() if k in material.texture_files()}
     if not files:
         return None

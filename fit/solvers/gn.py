@@ -311,7 +311,35 @@ class GaussNewton(AbstractSolver):
                     constants = np.asarray(resume["constants"], np.float32)
         settled_at, noisy = None, []
         limit = max(steps, options.max_steps or steps) if options.precision else steps
+
+        def still_noisy() -> list[str]:
+            """The free keys whose average is not yet within `precision` (`imprecise`)."""
+            n = _averaged(len(iterates), options.average)
+            if n < 3:
+                return [f.key for f in problem.free]
+            rows = np.asarray(pairs[len(pairs) - n :], np.float64)
+            image, x, j1, j2 = linear
+            jac = [np.asarray(model(u, image, j, x)[1], np.float64) for j in (j1, j2)]
+            return imprecise(problem, rows[:, : len(u)], rows[:, len(u) :], *jac, options.precision)
+
+        def finished(done: int) -> bool:
+            """Whether the phase ends with `done` steps taken: settled (`window`), or precise
+            at a check (`precision`: after `steps`, then every `refresh`). Asked of the state
+            before a step, so that a resumed phase asks it of the state it saved."""
+            nonlocal settled_at, noisy
+            window = options.window
+            if window and len(iterates) > window and settled(iterates[-window - 1 :], tol):
+                settled_at, noisy = done, []
+                return True
+            if options.precision and done >= steps and (done - steps) % options.refresh == 0:
+                noisy = still_noisy()
+                return not noisy
+            return False
+
+        tol = options.tolerance
         for i in range(first, limit):
+            if i > 0 and finished(i):
+                break
             step_seed = seed * 100003 + i + 1
             if linear is None or i % options.refresh == 0:
                 # Two Jacobians of half the samples each (independent seeds), each averaged
@@ -378,19 +406,9 @@ class GaussNewton(AbstractSolver):
                         **({} if mean is None else {"mean_residual": mean}),
                     }
                 )
-            window, tol = options.window, options.tolerance
-            if window and len(iterates) > window and settled(iterates[-window - 1 :], tol):
-                settled_at = i + 1
-                break
-            at_check = (i + 1 - steps) % options.refresh == 0 or i + 1 == limit
-            if options.precision and i + 1 >= steps and at_check:
-                n = _averaged(len(iterates), options.average)
-                rows = np.asarray(pairs[len(pairs) - n :], np.float64)
-                noisy = imprecise(
-                    problem, rows[:, : len(u)], rows[:, len(u) :], jac1, jac2, options.precision
-                )
-                if not noisy:
-                    break
+        else:
+            if options.precision and limit > steps:  # what was still noisy at the limit
+                noisy = still_noisy()
         taken = len(iterates)
         n = _averaged(taken, options.average)
         tail = iterates[taken - n :] if n else []

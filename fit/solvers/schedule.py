@@ -77,6 +77,13 @@ class Phase(BaseModel):
                 first["msg"].replace("Input should", "should").replace("a valid tuple", "an array")
             )
             raise FieldError(key, f"got {first['input']!r}; {said}") from None
+        limit = getattr(self._options, "max_steps", None)
+        if limit is not None and not self._options.precision:
+            raise FieldError(
+                "max_steps", "limits a phase that averages until precise; set precision"
+            )
+        if limit is not None and limit < self.steps:
+            raise FieldError("max_steps", f"= {limit} is below steps = {self.steps}; raise it")
         return self
 
     @property
@@ -142,9 +149,9 @@ TEXTURE_SCHEDULE = (
 
 
 #: Quality presets (`fit.quality`, `layerfit fit --quality`), each a change of the schedule (the
-#: default one or a config's own phases): `draft` halves every phase's steps (its limit, for a
-#: phase that ends when it settles) and renders the full-resolution phases at half resolution;
-#: `best` doubles every phase's steps (`QUALITIES`). Their time and error: BENCHMARKS, "Quality
+#: default one or a config's own phases): `draft` halves every phase's steps and step limits
+#: (`max_steps`) and renders the full-resolution phases at half resolution; `best` doubles
+#: every phase's steps and limits (`QUALITIES`). Their time and error: BENCHMARKS, "Quality
 #: presets".
 
 
@@ -318,7 +325,7 @@ def run_schedule(
         checkpoint.latest = saved
         if progress:  # the phases finished before the stop show as finished
             for k, report in enumerate(reports[:first]):
-                progress(k, phases[k].steps, report.loss)
+                progress(k, max(phases[k].steps, report.steps), report.loss)
     result = Result(problem.values(u), u, float("nan"), 0)
     if saved is not None and first == len(phases):  # stopped after the last phase's end
         _restore_phase_result(result, saved, history)
@@ -383,8 +390,8 @@ def run_schedule(
         if solved is not problem:
             result.u = put(u, result.u)
             result.values = problem.values(result.u)
-        if progress:
-            progress(k, phase.steps, result.loss)
+        if progress:  # a phase that averaged past its steps (`precision`) ends at those
+            progress(k, max(phase.steps, result.steps), result.loss)
         history += result.history
         reports += result.reports
         u, steps = result.u, steps + result.steps

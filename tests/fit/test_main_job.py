@@ -17,8 +17,9 @@ ROOT = Path(__file__).resolve().parents[2]
 @pytest.mark.slow
 def test_main_job_fits_the_cup_within_its_reported_sd(tmp_path, monkeypatch):
     """Every fitted parameter within 3 reported sd of the truth; ior and the thresholds within
-    the main job's targets, each layer's mask IoU at least 0.9 (alpha and the colours are within their sd, which this capture does not
-    make small enough to promise 5 % and 0.02: BENCHMARKS, "The main job")."""
+    the main job's targets, each layer's mask IoU at least 0.9 (alpha and the colours are
+    within their sd, which this capture does not make small enough to promise 5 % and 0.02:
+    BENCHMARKS, "The main job")."""
     monkeypatch.chdir(ROOT)
     with pytest.raises(SystemExit) as exit_:
         main(["fit", "configs/cup-fit.toml", "--out", str(tmp_path / "run")])
