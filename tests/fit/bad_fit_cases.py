@@ -96,6 +96,14 @@ FIT_CASES: list[Case] = [
         ("capture.toml", "truth_options.glaze.lobe", "diffuse"),
     ),
     (
+        "fit-truth-texture-missing",
+        manifest_fit(
+            '"glaze.diffuse" = "qualitative"',
+            '"glaze.diffuse" = "qualitative"\n[truth_textures]\n"glaze.mask.texture" = "gone.exr"',
+        ),
+        ("capture.toml", "truth_textures.glaze.mask.texture", "does not exist"),
+    ),
+    (
         "fit-free-twice",
         fit_cfg('free = ["glaze.roughness"]', 'free = ["glaze.roughness", "glaze.roughness"]'),
         ("fit.toml", "fit.free", "more than once"),
