@@ -104,9 +104,13 @@ def start_values(free: list[Free]) -> dict:
 
 
 def texture_data(texture: dict) -> np.ndarray:
-    """A bitmap texture's texels as Mitsuba holds them (height, width, channels)."""
+    """A bitmap texture's texels as Mitsuba holds them (height, width, channels). Read with
+    the scalar variant where none is set yet: a fit config is loaded (a free texture's start
+    resampled from its file) before the command chooses its variant."""
     import mitsuba as mi
 
+    if mi.variant() is None:
+        mi.set_variant("scalar_rgb")
     return np.asarray(mi.traverse(mi.load_dict(texture))["data"], dtype=np.float32)
 
 

@@ -107,3 +107,35 @@ def test_masks_from_one_flat_start_each_have_their_own_texels():
     for group in renderer.groups:
         data = [k for k in group.params.keys() if k.endswith(".mask.texture.data")]
         assert len(data) == 3, data
+
+
+def test_a_texture_started_from_its_file_loads_before_any_variant(tmp_path):
+    """A fit config whose free texture starts from its file (resampled) loads in a fresh
+    process, where no Mitsuba variant is set yet (`layerfit fit` loads the config first: it
+    was an internal error, "No variant was set!")."""
+    import subprocess
+    import sys
+
+    text = (ROOT / "configs" / "cup-fit.toml").read_text()
+    text = text.replace('"../captures/samples/cup"', repr(str(ROOT / "captures/samples/cup")))
+    text = text.replace('"textures/', f'"{ROOT / "configs" / "textures"}/')
+    text = text.replace('"glaze.mask.threshold",', '"glaze.mask.threshold", "glaze.mask.texture",')
+    text = text.replace(
+        "uncertainty_spp = 32",
+        'uncertainty_spp = 32\n[fit.textures]\n"glaze.mask.texture" = [16, 8]',
+    )
+    config = tmp_path / "fit.toml"
+    config.write_text(text)
+    code = (
+        "import sys; from fit.config import load_fit_config; "
+        "cfg = load_fit_config(sys.argv[1]); print(sorted(cfg.textures))"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code, str(config)],
+        check=False,
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "glaze.mask.texture" in done.stdout
