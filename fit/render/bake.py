@@ -38,17 +38,22 @@ def bake_texture(texture: dict, width: int = 256, height: int = 256) -> np.ndarr
     return out
 
 
+def texel_index(u: np.ndarray, v: np.ndarray, width: int, height: int) -> tuple:
+    """(rows, columns) of the texels of a width x height UV grid laid out as `bake_texture`'s
+    (and as Mitsuba's `bitmap` reads an image) that UV points fall in, wrapped into [0, 1)."""
+    cols = np.minimum(((np.asarray(u) % 1.0) * width).astype(int), width - 1)
+    rows = np.minimum(((np.asarray(v) % 1.0) * height).astype(int), height - 1)
+    return rows, cols
+
+
 def seen_texels(scene, width: int, height: int, supersample: int = 2) -> np.ndarray:
     """Which texels of a width x height UV grid (laid out as `bake_texture`'s) the scene's
     cameras see: (height, width) booleans, a texel seen where a ray through a pixel (on a
     `supersample` x `supersample` grid in each) first meets the object from its front, through
-    one bare scene of the object (lights left out, as `trace_silhouettes`)."""
-    from .scene import bounding_sphere, geometry_dict, load_scene, sensor_dict
+    one bare scene of the object (lights left out, `bare_scene`)."""
+    from .scene import bare_scene
 
-    bounds = bounding_sphere(scene.geometry)
-    sensors = {f"sensor_{k:04d}": sensor_dict(c, 1, bounds) for k, c in enumerate(scene.cameras)}
-    bare = geometry_dict(scene, mi.load_dict({"type": "diffuse"}))
-    loaded = load_scene({"type": "scene", "object": bare, **sensors})
+    loaded = bare_scene(scene, scene.cameras)
     seen = np.zeros((height, width), bool)
     for camera, sensor in zip(scene.cameras, loaded.sensors(), strict=True):
         nx, ny = camera.width * supersample, camera.height * supersample
@@ -58,8 +63,5 @@ def seen_texels(scene, width: int, height: int, supersample: int = 2) -> np.ndar
         si = loaded.ray_intersect(ray)
         front = np.asarray(si.is_valid()) & (np.asarray(si.wi.z) > 0)
         uv = np.asarray(si.uv)
-        u, v = uv[0][front] % 1.0, uv[1][front] % 1.0
-        cols = np.minimum((u * width).astype(int), width - 1)
-        rows = np.minimum((v * height).astype(int), height - 1)
-        seen[rows, cols] = True
+        seen[texel_index(uv[0][front], uv[1][front], width, height)] = True
     return seen

@@ -202,6 +202,15 @@ BACK_FACE_SHARE = 0.005
 BACK_FACE_COSINE = -0.5
 
 
+def bare_scene(scene: Scene, cameras) -> mi.Scene:
+    """The object alone (a diffuse material, no lights) with every camera a sensor (1 spp),
+    for tracing rays from the views."""
+    bounds = bounding_sphere(scene.geometry)
+    sensors = {f"sensor_{k:04d}": sensor_dict(c, 1, bounds) for k, c in enumerate(cameras)}
+    bare = geometry_dict(scene, mi.load_dict({"type": "diffuse"}))
+    return load_scene({"type": "scene", "object": bare, **sensors})
+
+
 def trace_silhouettes(scene: Scene, cameras: list[Camera]) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per camera: (the pixel centres that meet the object, those that meet it from behind, as
     `BACK_FACE_COSINE` says), as (ny, nx) booleans on a grid of at most `BACK_FACE_SIDE` a side
@@ -209,10 +218,7 @@ def trace_silhouettes(scene: Scene, cameras: list[Camera]) -> list[tuple[np.ndar
     image's extent), traced through one bare scene of the object (lights left out) with every
     camera a sensor. The materials are one-sided: pixels met from behind render black (an open
     mesh seen from inside, a mesh whose normals point inward)."""
-    bounds = bounding_sphere(scene.geometry)
-    sensors = {f"sensor_{k:04d}": sensor_dict(c, 1, bounds) for k, c in enumerate(cameras)}
-    bare = geometry_dict(scene, mi.load_dict({"type": "diffuse"}))
-    loaded = load_scene({"type": "scene", "object": bare, **sensors})
+    loaded = bare_scene(scene, cameras)
 
     def trace(sensor, x, y) -> tuple[np.ndarray, np.ndarray]:
         ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(x.ravel(), y.ravel()), mi.Point2f(0.5))

@@ -23,6 +23,7 @@ from .uncertainty import (
     inverse_determined,
     linear_model,
     refuse_forward_mode,
+    transform_jacobian,
 )
 
 
@@ -174,10 +175,7 @@ def imprecise(problem, tail, gradients, jac1, jac2, precision: float) -> list[st
     cov = averaging_covariance(tail, gradients, u, h, inverse)
     n = problem.n_material
     x = np.asarray(to_physical(problem.free, u[:n]), np.float64)
-    slope = np.asarray(
-        jax.jacfwd(lambda v: to_physical(problem.free, v, jnp))(jnp.asarray(u[:n], jnp.float32)),
-        np.float64,
-    )
+    slope = transform_jacobian(problem.free, u[:n])
     sd = np.sqrt(np.clip(np.diag(slope @ cov[:n, :n] @ slope.T), 0.0, None))
     out, i = [], 0
     for f in problem.free:
@@ -315,9 +313,7 @@ class GaussNewton(AbstractSolver):
         def still_noisy() -> list[str]:
             """The free keys whose average is not yet within `precision` (`imprecise`)."""
             n = _averaged(len(iterates), options.average)
-            if n < 3:
-                return [f.key for f in problem.free]
-            rows = np.asarray(pairs[len(pairs) - n :], np.float64)
+            rows = np.asarray(pairs[len(pairs) - n :], np.float64).reshape(n, 2 * len(u))
             image, x, j1, j2 = linear
             jac = [np.asarray(model(u, image, j, x)[1], np.float64) for j in (j1, j2)]
             return imprecise(problem, rows[:, : len(u)], rows[:, len(u) :], *jac, options.precision)

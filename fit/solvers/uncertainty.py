@@ -156,6 +156,13 @@ def averaging_covariance(iterates, gradients, u, h, inverse) -> np.ndarray:
     return inverse @ np.atleast_2d(np.cov(noise, rowvar=False)) @ inverse / len(noise)
 
 
+def transform_jacobian(free, u) -> np.ndarray:
+    """d(physical values)/du of the material's part `u` of a solver vector (its transforms'
+    derivatives: diagonal per component, zero at a clipped bound)."""
+    u = jnp.asarray(u, jnp.float32)
+    return np.asarray(jax.jacfwd(lambda v: to_physical(free, v, jnp))(u), np.float64)
+
+
 def linearised(
     problem: Problem, u, spp: int, seed: int, downscale: int = 1
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -280,7 +287,7 @@ def uncertainty(
         bread, undetermined = inverse_determined(cross_product(jac1, jac2))
     # d(values)/du: the material's transforms, then a block for the gains (each view's gain
     # depends on every gain coordinate through the first view's)
-    dxdu = np.asarray(jax.jacfwd(lambda v: to_physical(problem.free, v, jnp))(u[:n]), np.float64)
+    dxdu = transform_jacobian(problem.free, u[:n])
     if problem.gain_views:
         dxdu = block_diag(dxdu, problem.gain_jacobian(u[n:]))
     n_obs = int(np.count_nonzero(np.any((jac1 != 0) | (jac2 != 0), axis=1)))

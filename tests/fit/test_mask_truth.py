@@ -15,6 +15,7 @@ from fit.commands.run_folder import mask_iou, masks, shares, truth_material
 from fit.commands.synth import synthesize
 from fit.config import load_render_config
 from fit.render import seen_texels
+from fit.render.bake import bake_texture, texel_index
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -139,3 +140,24 @@ def test_a_texture_started_from_its_file_loads_before_any_variant(tmp_path):
     )
     assert done.returncode == 0, done.stderr[-2000:]
     assert "glaze.mask.texture" in done.stdout
+
+
+def test_texel_index_is_the_texel_mitsubas_bitmap_reads_and_bake_writes(tmp_path):
+    """`seen_texels` marks the texel a UV point falls in as Mitsuba's `bitmap` looks it up (and
+    `bake_texture` lays it out): a 7x5 texture of distinct values, read at random UV points by
+    the bitmap itself (nearest texel), equals the texels `texel_index` names; a flipped row or
+    column order would not."""
+    import mitsuba as mi
+
+    from captures.images import write_image
+
+    rng = np.random.default_rng(0)
+    data = rng.permutation(35).reshape(5, 7, 1).astype(np.float32)
+    path = write_image(tmp_path / "texels.exr", data)
+    texture = {"type": "bitmap", "filename": str(path), "raw": True, "filter_type": "nearest"}
+    u, v = rng.uniform(0.01, 0.99, 200), rng.uniform(0.01, 0.99, 200)
+    si = mi.SurfaceInteraction3f()
+    si.uv = mi.Point2f(u.astype(np.float32), v.astype(np.float32))
+    read = np.asarray(mi.load_dict(texture).eval_1(si))
+    np.testing.assert_array_equal(read, data[..., 0][texel_index(u, v, 7, 5)])
+    np.testing.assert_array_equal(bake_texture(texture, 7, 5), data[..., 0])
