@@ -37,8 +37,8 @@ __all__ = [
 
 
 def register() -> None:
-    """Register `oren_nayar`, `glaze`, `layered` (BSDFs) and `fbm` (texture) with the current
-    Mitsuba variant."""
+    """Register `oren_nayar`, `glaze`, `layered` (BSDFs), `fbm` and `texels` (textures) with the
+    current Mitsuba variant."""
     import mitsuba as mi
 
     if mi.variant() is None:
@@ -47,8 +47,10 @@ def register() -> None:
     from .glaze import Glaze
     from .layered import Layered
     from .oren_nayar import OrenNayar
+    from .texels import Texels
 
     mi.register_bsdf("oren_nayar", OrenNayar)
     mi.register_bsdf("glaze", Glaze)
     mi.register_bsdf("layered", Layered)
     mi.register_texture("fbm", FbmMask)
+    mi.register_texture("texels", Texels)

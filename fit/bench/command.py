@@ -27,6 +27,7 @@ TABLES = (
     "versus",
     "relight",
     "quality",
+    "texture-step",
 )
 #: The fit config a table reads by default (`fit_config` None).
 FIT_CONFIGS = {"relight": Path("configs/diligent-pot1.toml")}
@@ -138,6 +139,7 @@ def run(
     from .recovery import recovery_table
     from .relight import relight_table
     from .schedules import fit_trade_table
+    from .texture_step import texture_step_table
     from .versus import versus_table
 
     tables: list[Table] = []
@@ -168,6 +170,8 @@ def run(
                 tables.append(relight_table(fit_config, progress))
             if only == "quality":
                 tables.extend(quality_table(seeds, results, progress, plot=plot))
+            if only == "texture-step":
+                tables.append(texture_step_table(progress=progress))
         except InputError:
             raise
         except ValueError as err:  # bad input met during the work (pydantic's errors among it)

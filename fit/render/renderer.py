@@ -144,15 +144,34 @@ def _targets(f: Free, params, view: str) -> list[str]:
     return keys
 
 
-def _unfreezable(f: Free) -> bool:
-    """Whether a free parameter keeps its renders from being frozen: any texture. Replayed after
-    a bitmap's texels changed, a frozen pass read stale memory or crashed (Dr.Jit 1.5 / Mitsuba
-    3.9.1, LLVM): a mask's 16x16 texels inside the `fbm` texture gave wrong images (values of
-    1e29) and a reverse pass's segmentation fault within a few steps, with one channel or three,
-    the texels set before the call or inside the recording; a pigment texture directly under
-    the glaze replayed exactly through 12 steps with a perspective `batch` sensor, and crashed
-    in the reverse pass of the DiLiGenT pot's orthographic views (one scene per light)."""
-    return bool(f.shape)
+def _with_texels(material, free: list[Free]):
+    """`material`'s dict with the bitmaps of its free textures read by the `texels` plugin
+    (`materials.texels`): its texels are one tensor, written between frozen renders. (Mitsuba's
+    `bitmap` keeps a second copy, and replays of frozen renders read it stale.)"""
+    if not isinstance(material, Material):
+        return material
+    files = {str(material.params[f.key].texture) for f in free if f.shape}
+
+    def swap(value):
+        if not isinstance(value, dict):
+            return value
+        out = {k: swap(v) for k, v in value.items()}
+        if out.get("type") == "bitmap" and str(out.get("filename")) in files:
+            out["type"] = "texels"
+        return out
+
+    return swap(material.bsdf) if files else material
+
+
+def _write_texels(texels, values) -> None:
+    """Write a free texture's texels (a `texels` plugin's tensor, `_with_texels`) in place: a
+    scatter into the same array. A new tensor assigned instead, to this plugin or to Mitsuba's
+    `bitmap`, made frozen renders replay stale texels: wrong images from the third call on, and
+    wrong gradients (0 for a mask threshold whose gradient was -53), on perspective and
+    orthographic views alike (Dr.Jit 1.5 / Mitsuba 3.9.1, LLVM). Written in place, primal and
+    reverse passes replay what unfrozen ones render (`tests/fit/test_frozen_textures.py`)."""
+    flat = mi.Float(np.asarray(values, np.float32).reshape(-1))
+    dr.scatter(texels.array, flat, dr.arange(mi.UInt32, dr.width(flat)))
 
 
 def _like(current, values):
@@ -310,7 +329,7 @@ class Renderer:
     orthographic cameras, which Mitsuba 3.9 does not declare to the recording, are rebuilt
     inside it (`_rebuild_sensor`); the cup's five thin-lens views of 64x56: an Adam step at 8
     spp 0.69-0.82 s frozen, 1.19 s re-traced. A function whose recording fails runs unfrozen
-    from then on (`_Frozen`). Nothing is frozen while a texture is free (`_unfreezable`)."""
+    from then on (`_Frozen`). A free texture is read by the `texels` plugin (`_with_texels`)."""
 
     def __init__(
         self,
@@ -331,7 +350,7 @@ class Renderer:
             and all(v.lights is None for v in views)
             and len({s[:2] for s in self.shapes}) == 1
         )
-        freeze = freeze and not any(_unfreezable(f) for f in free)
+        material = _with_texels(material, free)
         groups = [list(range(len(views)))] if batched else [[i] for i in range(len(views))]
         self.groups = [_Group(capture, g, material, free, freeze) for g in groups]
         self.scenes = [g.scene for g in self.groups]
@@ -357,6 +376,9 @@ class Renderer:
         for f, keys in zip(self.free, group.targets, strict=True):
             chunk = values[i : i + f.size]
             for key in keys:
+                if f.shape and not grad:
+                    _write_texels(params[key], chunk)
+                    continue
                 current = params[key]
                 if f.emitter:
                     value = _like(current, group.bases[key] * float(chunk[0]))

@@ -439,7 +439,7 @@ COMMAND_CASES: list[Case] = [
         inspect_args(out("cap"), "--downscale", "8", "--sheet", out("s.png")),
         ("--downscale = 8", "4 pixels", "smaller factor"),
     ),
-    ("bench-only", lambda d: ["bench", "--only", "speed"], ("--only", "relight or quality")),
+    ("bench-only", lambda d: ["bench", "--only", "speed"], ("--only", "quality or texture-step")),
     ("bench-spp-huge", lambda d: ["bench", "--spp", "100000"], ("--spp",)),
     ("bench-size", lambda d: ["bench", "--only", "recovery", "--size", "3x3"], ("--size",)),
     ("bench-size-text", lambda d: ["bench", "--only", "grid", "--size", "big"], ("--size",)),
