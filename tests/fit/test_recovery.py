@@ -15,8 +15,8 @@ from fit.bench import grid, versus
 from fit.material import resolve
 from fit.solvers import Problem
 
-#: The fast subset: a high ior on the sphere at 96x72 (about 25 s). The full sweep (sphere and
-#: torus, every alpha, ior and pigment of the issue) runs in the slow target and in
+#: The fast subset: a high ior on the sphere at 96x72 (about 25 s). The sweep (sphere and
+#: torus, every alpha, ior and pigment) runs in the slow target (every other case) and whole in
 #: `layerfit bench --only recovery`.
 FAST = [recovery.Case("sphere", ior=2.0, label="ior 2")]
 
@@ -29,11 +29,15 @@ def test_recovered_within_targets_and_three_sigma(case):
 
 
 @pytest.mark.slow
-def test_full_sweep_is_calibrated():
-    """The whole sweep at 160x120 (about 35 minutes on 2 cores): at least 90 % of the cases
-    have every error within 3 reported sd (the honest-uncertainty half of the issue's
-    calibration; which cases meet the accuracy targets is the bench's table, BENCHMARKS)."""
-    outcomes = [recovery.recover(case, width=160, height=120) for case in recovery.sweep()]
+def test_sweep_is_calibrated():
+    """Every other case of the sweep at 160x120 (about 6 minutes on 2 cores; 15 cases a shape,
+    so every alpha, ior and pigment is fitted on one shape or the other): at least 90 % of the
+    cases have every error within 3 reported sd (the honest-uncertainty half of the
+    calibration; the whole sweep, and which cases meet the accuracy targets, is the bench's
+    table: `bash scripts/bench_recovery.sh`, BENCHMARKS)."""
+    cases = recovery.sweep()[::2]
+    assert {c.label for c in cases} == {c.label for c in recovery.sweep()}
+    outcomes = [recovery.recover(case, width=160, height=120) for case in cases]
     covered = [all(o.within_sigmas().values()) for o in outcomes]
     misses = [o.case.name for o, ok in zip(outcomes, covered, strict=True) if not ok]
     assert sum(covered) >= 0.9 * len(outcomes), misses
