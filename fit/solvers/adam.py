@@ -14,6 +14,7 @@ from pydantic import Field, PositiveFloat
 
 from .base import AbstractSolver, Options, Outcome, PhaseReport, Result, tail_variance
 from .problem import jax_seed, residuals
+from .pyramid import Pyramid
 
 
 class AdamOptions(Options):
@@ -35,6 +36,10 @@ class AdamOptions(Options):
     profile_gains: bool = True
     """Free gains solved in closed form between steps (variable projection) rather than as
     Adam's coordinates; over the averaged tail, from the least-squares sums of its steps."""
+    levels: int = Field(0, ge=0, le=8)
+    """Coarser grids of each free texture that Adam moves with its texels, each half the last
+    one's size (`fit.solvers.pyramid`: a texel is its own coordinate plus its cells'): a
+    texture's broad shape moves with the gradients of many pixels at once. 0: texels alone."""
 
 
 class Adam(AbstractSolver):
@@ -67,9 +72,12 @@ class Adam(AbstractSolver):
         residual = residuals(
             problem, render, downscale, independent_gains=True, profile_gains=profile
         )
-        n = problem.n_material
+        n, size = problem.n_material, len(u0)
+        pyramid = Pyramid(problem.free, options.levels)
+        expand = pyramid.expand  # the solver's coordinates z -> u
 
-        def loss(u, seed):
+        def loss(z, seed):
+            u = expand(z)
             r, sums = residual(u, seed) if profile else (residual(u, seed), None)
             return 0.5 * jnp.dot(r, r), sums
 
@@ -79,14 +87,15 @@ class Adam(AbstractSolver):
             rate = functools.partial(_geometric, options.lr, decay)
         optimiser = optax.adam(rate)
         if options.hold:  # zeroed before Adam: held coordinates keep zero moments, never move
-            keep = jnp.asarray(problem.held(options.hold) == 0, jnp.float32)
+            keep = np.asarray(problem.held(options.hold) == 0, np.float32)
+            keep = jnp.asarray(np.concatenate([keep, keep[pyramid.owners()]]))
             zero = optax.stateless(lambda updates, params=None: updates * keep)
             optimiser = optax.chain(zero, optimiser)
         solver = optx.OptaxMinimiser(optimiser, rtol=0.0, atol=0.0)
-        u = jnp.asarray(u0, jnp.float32)
+        z = jnp.asarray(pyramid.start(u0), jnp.float32)
         f_struct = jax.ShapeDtypeStruct((), jnp.float32)
-        state = solver.init(loss, u, jax_seed(seed), {}, f_struct, None, frozenset())
-        step = jax.jit(lambda u, s, st: solver.step(loss, u, s, {}, st, frozenset()))
+        state = solver.init(loss, z, jax_seed(seed), {}, f_struct, None, frozenset())
+        step = jax.jit(lambda z, s, st: solver.step(loss, z, s, {}, st, frozenset()))
         history, tail, rejected, first, gain_sums = [], [], 0, 0, None
         if resume is not None:  # the state offered at step `first`
             leaves, treedef = jax.tree.flatten(state)
@@ -94,13 +103,14 @@ class Adam(AbstractSolver):
                 jnp.asarray(v, dtype=x.dtype) for x, v in zip(leaves, resume["leaves"], strict=True)
             ]
             state = jax.tree.unflatten(treedef, saved)
-            u, first = jnp.asarray(resume["u"], jnp.float32), int(resume["step"])
+            z = jnp.asarray(resume.get("z", resume["u"]), jnp.float32)
+            first = int(resume["step"])
             history, rejected = list(resume["history"]), int(resume["rejected"])
             tail = list(np.asarray(resume["tail"]))
             gain_sums = resume.get("gain_sums")
         first_averaged = steps - round(options.average * steps)
         for i in range(first, steps):
-            new_u, new_state, sums = step(u, jax_seed(seed * 100003 + i + 1), state)
+            new_z, new_state, sums = step(z, jax_seed(seed * 100003 + i + 1), state)
             if profile and np.all(np.isfinite(sums := np.asarray(sums, np.float64))):
                 # the gains from this step's least-squares sums (num, den), so they never lag
                 # the material (averaging them over earlier steps, which lags, left the cup's
@@ -110,12 +120,13 @@ class Adam(AbstractSolver):
                 if i >= first_averaged:
                     gain_sums = sums if gain_sums is None else gain_sums + sums
                     sums = gain_sums
-                new_u = new_u.at[n:].set(problem.gain_coordinates(_log_gains(sums)))
-            value = float(new_state.f)  # the loss at `u`, before this update
-            if np.all(np.isfinite(np.asarray(new_u))) and np.isfinite(value):
-                u, state = new_u, new_state
+                new_z = new_z.at[n:size].set(problem.gain_coordinates(_log_gains(sums)))
+            value = float(new_state.f)  # the loss at `z`, before this update
+            if np.all(np.isfinite(np.asarray(new_z))) and np.isfinite(value):
+                z, state = new_z, new_state
             else:
                 rejected += 1
+            u = expand(z)
             history.append(value)
             if i >= first_averaged:
                 tail.append(np.asarray(u))
@@ -127,6 +138,7 @@ class Adam(AbstractSolver):
                     {
                         "step": i + 1,
                         "u": u,
+                        **({"z": z} if pyramid.extra else {}),
                         "leaves": jax.tree.leaves(state),
                         "history": history,
                         "n_history": len(history),
@@ -136,6 +148,7 @@ class Adam(AbstractSolver):
                         **({"gain_sums": gain_sums} if gain_sums is not None else {}),
                     }
                 )
+        u = expand(z)
         return averaged_result(self.name, problem, u, tail, gain_sums, history, steps, rejected)
 
 

@@ -136,9 +136,20 @@ DEFAULT_SCHEDULE = (
 )
 
 
+#: Coarser grids of each free texture that the default's Adam phases move with its texels when
+#: a mask's texture is free (`AdamOptions.levels`, `fit.solvers.pyramid`): a mask texel's
+#: gradient goes through the layer choice's Russian roulette, far noisier than a colour's. The
+#: cup's masks from ones: `mask_iou` lime 0.03 -> 0.44-0.48, glaze 0.78 both, ior 1.432 ->
+#: 1.493-1.494 (truth 1.5); the DiLiGenT pot's colour per pixel relit 0.061 without, 0.063 with
+#: (BENCHMARKS, "The main job", "DiLiGenT pot").
+TEXTURE_LEVELS = 4
+#: The free keys that are masks' textures.
+MASK_TEXTURES = "*.mask.texture"
+
 #: The default schedule with textures free (`[fit.textures]`): Adam moves everything, at half
 #: resolution then at full resolution with its last half averaged (a texel's gradient is one
-#: texel's pixels' noise); then `gn` polishes the scalars with the textures held
+#: texel's pixels' noise), masks' textures coarse to fine (`TEXTURE_LEVELS`); then `gn` polishes
+#: the scalars with the textures held
 #: (`Problem.holding_textures`: no forward-mode render goes through a bitmap's texels), and the
 #: uncertainty is the scalars' with the textures held.
 TEXTURE_SCHEDULE = (
@@ -193,12 +204,18 @@ def default_schedule(
     """`DEFAULT_SCHEDULE` for these free keys (`TEXTURE_SCHEDULE` with `textures` free, its
     Adam phases alone without `scalars` free: nothing for `gn` to move): with a mask threshold
     free, its Adam phase is split, the first 30 steps holding the thresholds (colours first;
-    `AdamOptions.hold`). On the cup, one seed's glaze threshold otherwise walked out of the
+    `AdamOptions.hold`); with a mask's texture free, its Adam phases move textures coarse to
+    fine (`TEXTURE_LEVELS`). On the cup, one seed's glaze threshold otherwise walked out of the
     noise's range in Adam's first 20 steps, where no gradient brings it back (BENCHMARKS, "The
     main job")."""
     schedule = TEXTURE_SCHEDULE if textures else DEFAULT_SCHEDULE
     if textures and not scalars:
         schedule = tuple(p for p in schedule if p.solver == "adam")
+    if textures and any(fnmatch.fnmatchcase(k, MASK_TEXTURES) for k in free):
+        schedule = tuple(
+            Phase(**{**p.model_dump(), "levels": TEXTURE_LEVELS}) if p.solver == "adam" else p
+            for p in schedule
+        )
     if not any(fnmatch.fnmatchcase(k, MASK_THRESHOLDS) for k in free):
         return schedule
     adam, *rest = schedule

@@ -249,3 +249,36 @@ def test_a_stop_inside_the_held_phase_keeps_the_whole_vector_and_resumes(tmp_pat
         problem, values, phases, seed=3, uncertainty_spp=4, checkpoint=resumed, resume=True
     )
     np.testing.assert_allclose(again.u, whole.u, rtol=1e-5, atol=1e-6)
+
+
+def test_adam_with_coarse_grids_resumes_where_it_stopped():
+    """An Adam phase moving a texture with its coarse grids (`levels`), stopped after step 3 and
+    resumed from what it offered, ends where the uninterrupted phase does: the grids' own
+    coordinates are in the offered state, not only the texels they add up to."""
+    from sphere_problems import keep_offered
+
+    from fit.solvers.adam import Adam, AdamOptions
+
+    capture, _ = sphere(16, 12)
+    cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
+    material = with_free_textures(cfg.material, {"glaze.pigment": (8, 4)})
+    problem = Problem(capture, material, resolve(material, ["glaze.pigment", "glaze.roughness"]))
+    u0 = np.asarray(problem.unconstrained({f.key: f.start for f in problem.free}), np.float32)
+    options = AdamOptions(lr=0.1, levels=2)
+    run = dict(steps=6, spp=4, seed=1, downscale=1, options=options)
+    saved: dict = {}
+    whole = Adam().run(problem, u0, offer=keep_offered(3, saved), **run)
+    assert saved["z"].size == u0.size + (2 * 4 + 1 * 2) * 3  # grids of 4x2 and 2x1 cells
+    resumed = Adam().run(problem, u0, resume=saved, **run)
+    np.testing.assert_allclose(resumed.u, whole.u, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(whole.u[:96], u0[:96])  # the texels moved
+
+
+def test_the_default_moves_masks_textures_coarse_to_fine_and_colours_texel_by_texel():
+    from fit.solvers.schedule import TEXTURE_LEVELS, default_schedule
+
+    def levels(free):
+        return [p.options.levels for p in default_schedule(free, textures=True) if p.solver == "adam"]
+
+    assert levels(["glaze.pigment", "glaze.ior"]) == [0, 0]
+    assert set(levels(["lime.mask.texture", "lime.mask.threshold", "glaze.ior"])) == {TEXTURE_LEVELS}
