@@ -60,7 +60,7 @@ def test_a_constant_colour_starts_as_a_texture_of_its_value(tmp_path):
     assert cfg.phases[-1].solver == "gn"  # the scalars' polish, the texels held
 
 
-def test_a_texture_file_is_resampled_and_a_mask_without_one_starts_at_ones(tmp_path):
+def test_a_texture_file_is_resampled_and_a_mask_without_one_starts_halfway(tmp_path):
     gradient = np.linspace(0.2, 0.8, 16, dtype=np.float32)[None, :, None] * np.ones((8, 16, 3))
     write_image(tmp_path / "clay.exr", gradient.astype(np.float32))
     material = build_material(
@@ -77,8 +77,8 @@ def test_a_texture_file_is_resampled_and_a_mask_without_one_starts_at_ones(tmp_p
     assert half.shape == (4, 8, 3)
     np.testing.assert_allclose(half[0, :, 0], gradient[0, ::2, 0] + 0.02, atol=0.011)
     assert np.all(np.diff(half[0, :, 0]) > 0)  # the ramp kept, area-averaged
-    ones = start_texels(material, "glaze.mask.texture", (4, 2))
-    assert ones.shape == (2, 4, 1) and np.all(ones == 1.0)
+    half = start_texels(material, "glaze.mask.texture", (4, 2))
+    assert half.shape == (2, 4, 1) and np.all(half == 0.5)
     textured = with_free_textures(material, {"glaze.mask.texture": (4, 2)})
     assert textured.params["glaze.mask.texture"].texture is not None
     assert textured.params["glaze.mask.threshold"].value == pytest.approx(0.3)
