@@ -5,8 +5,9 @@ A fit writes a free texture's texels between renders, and renders are Dr.Jit fro
 Mitsuba 3.9.1's `bitmap` keeps a second copy of its texels inside its Dr.Jit texture, refreshed
 by `parameters_changed`; a reverse pass, which attaches derivatives to the texels inside the
 recording, runs that refresh there, and the replays read stale memory: wrong images and
-crashed reverse passes (Dr.Jit 1.5, LLVM). Here a change of texels is a new tensor and
-nothing else, as a change of any scalar parameter is.
+crashed reverse passes (Dr.Jit 1.5, LLVM). Here the lookups read the `data` tensor itself and
+`parameters_changed` does nothing, so texels written into that tensor in place (a scatter) are
+what the next replay reads. (A new tensor assigned between replays was read stale here too.)
 """
 
 from __future__ import annotations
