@@ -355,8 +355,10 @@ class Renderer:
         # reference cycles (and renders run with the collector off, `_no_gc`), and a frozen
         # render recorded while dead ones remain fails on their virtual calls ("validate(): The
         # frozen function included a virtual function call ..."), so every later fit ran
-        # unfrozen: a sphere case after the DiLiGenT pot's fit 71 s, 16 s with this
-        gc.collect()
+        # unfrozen: a sphere case after the DiLiGenT pot's fit 71 s, 16 s with this. Under the
+        # render lock: never while another thread records (freeing a scene then aborts)
+        with _ONE_AT_A_TIME:
+            gc.collect()
         groups = [list(range(len(views)))] if batched else [[i] for i in range(len(views))]
         self.groups = [_Group(capture, g, material, free, freeze) for g in groups]
         self.scenes = [g.scene for g in self.groups]
