@@ -12,9 +12,10 @@ free = ["glaze.pigment", "glaze.roughness", "glaze.ior"]
 A mask without a painted texture starts halfway, a texture of 0.5 (`MASK_START`): neither its
 layer nor the one below favoured. From ones (the starting look unchanged: the mask is texture x
 the fbm factor) the layer covered everything at first, its colour went to the object's average,
-and the fit lost the layers apart (a stained torus: `mask_iou` 0.36 from ones, 0.86 from 0.5). The start's texels are written
-once to a file named by their content in the system's temporary folder (every process that loads
-the same config, a Ray worker's included, builds the same file), never beside the user's files."""
+and the fit lost the layers apart (a stained torus: `mask_iou` 0.36 from ones, 0.86 from 0.5).
+The start's texels are written once to a file named by their content in the system's temporary
+folder (every process that loads the same config, a Ray worker's included, builds the same
+file), never beside the user's files."""
 
 from __future__ import annotations
 
@@ -45,6 +46,7 @@ def texture_keys(material: Material) -> list[str]:
 #: stained sphere 0.905 and 0.938, a stained torus 0.36 and 0.86, the cup's stain 0.01 and 0.45
 #: (BENCHMARKS, "Stained objects", "The main job").
 MASK_START = 0.5
+
 
 def start_texels(material: Material, key: str, size: tuple[int, int]) -> np.ndarray:
     """The starting texels (height, width, channels) of `key` as a texture of `size` (width,

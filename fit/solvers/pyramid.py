@@ -61,20 +61,18 @@ class Pyramid:
         return np.concatenate([np.asarray(u, np.float32), np.zeros(self.extra, np.float32)])
 
     def expand(self, z):
-        """`u` of the solver's coordinates `z` (JAX or NumPy): each texel plus its cells."""
-        xp = jnp if isinstance(z, jnp.ndarray) else np
+        """`u` of the solver's coordinates `z` (a JAX array): each texel plus its cells; `z`
+        itself without grids."""
+        if not self.grids:
+            return z
         n = z.shape[0] - self.extra
         u = z[:n]
         for g in self.grids:
             height, width, channels = g.shape
             coarse = z[n + g.start : n + g.start + g.size].reshape(*g.cells, channels)
             block = 2**g.level
-            fine = xp.repeat(xp.repeat(coarse, block, axis=0), block, axis=1)[:height, :width]
-            if xp is jnp:
-                u = u.at[g.offset : g.offset + fine.size].add(fine.reshape(-1))
-            else:
-                u = u.copy()
-                u[g.offset : g.offset + fine.size] += fine.reshape(-1)
+            fine = jnp.repeat(jnp.repeat(coarse, block, axis=0), block, axis=1)[:height, :width]
+            u = u.at[g.offset : g.offset + fine.size].add(fine.reshape(-1))
         return u
 
     def owners(self) -> np.ndarray:

@@ -37,10 +37,15 @@ GLAZE = {"type": "glaze", "pigment": [0.4, 0.4, 0.4], "roughness": 0.2, "ior": 1
 
 
 def capture(kind: str) -> Capture:
-    """Two 24x18 views of the sphere (no photographs: only renders are compared)."""
+    """Two 24x18 views of the sphere (no photographs: only renders are compared); `kind`
+    "thin-lens" a perspective camera with an aperture (a sensor each, rebuilt in recordings)."""
     cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
+    lens = {"aperture_radius": 0.05} if kind == "thin-lens" else {}
+    kind = "perspective" if kind == "thin-lens" else kind
     cameras = tuple(
-        Camera((5 * np.sin(a), -5 * np.cos(a), 0.5), (0, 0, 0), (0, 0, 1), 30.0, 24, 18, kind)
+        Camera(
+            (5 * np.sin(a), -5 * np.cos(a), 0.5), (0, 0, 0), (0, 0, 1), 30.0, 24, 18, kind, **lens
+        )
         for a in np.radians([0, 150])
     )
     scene = dataclasses.replace(cfg.scene, cameras=cameras, environment=(0.5, 0.5, 0.5))
@@ -54,8 +59,9 @@ def capture(kind: str) -> Capture:
     [
         ("perspective", STACK, "glaze.mask.texture", (8, 4)),
         ("orthographic", GLAZE, "glaze.pigment", (6, 4)),
+        ("thin-lens", STACK, "glaze.mask.texture", (5, 3)),
     ],
-    ids=["mask-in-fbm-perspective", "pigment-orthographic"],
+    ids=["mask-in-fbm-perspective", "pigment-orthographic", "mask-thin-lens-odd-size"],
 )
 def test_frozen_renders_follow_the_texels(tmp_path, kind, table, key, shape):
     material = with_free_textures(build_material(table, tmp_path / "m.toml"), {key: shape})

@@ -31,9 +31,8 @@ def test_the_start_is_the_texels_and_grids_halve_until_one_cell():
     ]
     assert pyramid.extra == 3 * 4 * 3 + 2 * 2 * 3 + 2 * 4 + 1 * 2
     u = np.random.default_rng(0).standard_normal(139).astype(np.float32)
-    z = pyramid.start(u)
-    np.testing.assert_array_equal(pyramid.expand(z), u)
-    np.testing.assert_array_equal(np.asarray(pyramid.expand(jnp.asarray(z))), u)
+    z = jnp.asarray(pyramid.start(u))
+    np.testing.assert_array_equal(np.asarray(pyramid.expand(z)), u)
 
 
 def test_a_coarse_cell_moves_its_block_of_texels_in_every_channel():

@@ -56,7 +56,8 @@ softness = 0.005
 #: Per shape: the least stain IoU, the glaze pigment's and the stain colour's largest errors.
 #: The sphere meets the targets (IoU 0.9, colours 0.02; measured IoU 0.938, pigment 0.009, stain
 #: 0.019); the torus, smaller in the views, does not (IoU 0.86, pigment 0.024, stain 0.021),
-#: and from a mask of ones it lost its layers apart (IoU 0.36, ior +0.28). Both: ior within 0.03, alpha within 5 % (measured 0.005 and 0.019; 2.6 and 1.7 %).
+#: and from a mask of ones it lost its layers apart (IoU 0.36, ior +0.28). Both: ior within
+#: 0.03, alpha within 5 % (measured 0.005 and 0.019; 2.6 and 1.7 %).
 BOUNDS = {"sphere": (0.9, 0.02, 0.03), "torus": (0.8, 0.03, 0.03)}
 
 
