@@ -28,7 +28,7 @@ from .base import Options, PhaseReport, Result
 from .checkpoint import Checkpoint
 from .problem import Problem
 from .registry import SOLVERS
-from .textures import smooth_textures
+from .textures import smooth_textures, texel_trade
 from .uncertainty import forward_mode_refusal, uncertainty
 
 
@@ -225,6 +225,19 @@ def default_schedule(
         Phase(**{**fields, "steps": adam.steps - 30}),
         *rest,
     )
+
+
+def _trade(problem: Problem, u, phases, seed: int, result: Result):
+    """`trade(J1, J2)` for the uncertainty of the scalars with `problem`'s textures held at `u`
+    (`fit.solvers.textures.texel_trade`, at `TEXTURE_SPP` and the last phase's resolution)."""
+    weights = result.texture_weight
+    downscale = phases[-1].downscale
+    seed = seed + len(phases)  # the uncertainty's (the trade's renders offset their own)
+
+    def trade(jac1, jac2):
+        return texel_trade(problem, u, (jac1, jac2), TEXTURE_SPP, seed, downscale, weights)
+
+    return trade
 
 
 def _same(u):
@@ -457,6 +470,8 @@ def run_schedule(
                 tail_gradients=result.tail_gradients,
                 # the last phase's Jacobians, where it solved this problem (not textures held)
                 linearisation=result.linearisation if last is problem else None,
+                # with textures held, what refitting their texels would take from the scalars
+                trade=None if last is problem else _trade(problem, u, phases, seed, result),
                 # a Ctrl-C stops it between two renders (its checkpoint: the last phase's end);
                 # once it is done, the fit is whole and is written
                 stop=None if checkpoint is None else (lambda: checkpoint.stop),

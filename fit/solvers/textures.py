@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..material import to_physical, to_unconstrained
+from ..material.free import AT_BOUND
 from .problem import Problem
 
 #: Rademacher probes of the curvature (two reverse passes each).
@@ -75,17 +76,16 @@ def laplacian(height: int, width: int):
     return (dx.T @ dx + dy.T @ dy).tocsc()
 
 
-def curvature(problem: Problem, u: np.ndarray, spp: int, seed: int) -> np.ndarray:
+def curvature(
+    problem: Problem, u: np.ndarray, spp: int, seed: int, downscale: int = 1
+) -> np.ndarray:
     """The diagonal of the Gauss-Newton curvature of the loss in the physical material values
     (see the module; negative estimates, texels whose information is below the renders' noise,
     are 0)."""
-    renderer = problem.renderer(1)
+    renderer = problem.renderer(downscale)
     n = problem.n_material
     values = np.asarray(to_physical(problem.free, np.asarray(u, np.float64)[:n]), np.float32)
-    _, sqrt_w = problem.target(1)
-    scale = sqrt_w.astype(np.float64)
-    if problem.gain_views:
-        scale = scale * np.asarray(problem.gain_multipliers(np.asarray(u)[n:], 1), np.float64)
+    scale = residual_scale(problem, u, downscale)
     rng = np.random.default_rng(seed)
     total = np.zeros(n)
     for k in range(PROBES):
@@ -98,15 +98,29 @@ def curvature(problem: Problem, u: np.ndarray, spp: int, seed: int) -> np.ndarra
     return np.maximum(total / PROBES, 0.0)
 
 
-def residual_variance(problem: Problem, u: np.ndarray, spp: int, seed: int) -> float:
+def residual_scale(problem: Problem, u: np.ndarray, downscale: int = 1) -> np.ndarray:
+    """d(weighted residual) / d(render), per pixel channel: the weights' square roots times the
+    views' gains."""
+    _, sqrt_w = problem.target(downscale)
+    scale = sqrt_w.astype(np.float64)
+    if problem.gain_views:
+        gains = problem.gain_multipliers(np.asarray(u)[problem.n_material :], downscale)
+        scale = scale * np.asarray(gains, np.float64)
+    return scale
+
+
+def residual_variance(
+    problem: Problem, u: np.ndarray, spp: int, seed: int, downscale: int = 1
+) -> float:
     """The weighted residual's variance per pixel channel at `u` (one render at `spp`)."""
-    renderer = problem.renderer(1)
+    renderer = problem.renderer(downscale)
     n = problem.n_material
     values = np.asarray(to_physical(problem.free, np.asarray(u, np.float64)[:n]), np.float32)
-    target, sqrt_w = problem.target(1)
+    target, sqrt_w = problem.target(downscale)
     image = renderer.render(values, seed, spp).astype(np.float64)
     if problem.gain_views:
-        image = image * np.asarray(problem.gain_multipliers(np.asarray(u)[n:], 1), np.float64)
+        gains = problem.gain_multipliers(np.asarray(u)[n:], downscale)
+        image = image * np.asarray(gains, np.float64)
     r = sqrt_w * (image - target)
     used = int(np.count_nonzero(sqrt_w))
     return float(np.sum(r**2)) / max(used - n, 1)
@@ -181,6 +195,70 @@ def smooth_textures(problem: Problem, u: np.ndarray, spp: int, seed: int) -> Smo
     smoothed_u = u.copy()
     smoothed_u[:n] = np.asarray(to_unconstrained(problem.free, _by_key(problem, out)), np.float32)
     return Smoothed(smoothed_u, std, weights, seen)
+
+
+#: Seed offset of the renders of the scalars' trade with the texels.
+TRADE_SEED_OFFSET = 0x7ADE5
+
+
+def texel_trade(
+    problem: Problem,
+    u: np.ndarray,
+    jacobians: tuple[np.ndarray, np.ndarray],
+    spp: int,
+    seed: int,
+    downscale: int = 1,
+    weights: dict[str, float] | None = None,
+) -> np.ndarray:
+    """What the free textures of `problem` at `u` take from the scalars' curvature: the Schur
+    complement's term `H_st H_tt^-1 H_ts` (rows and columns: the held problem's coordinates,
+    whose weighted residuals' Jacobians are `jacobians`, two independent renders), so that the
+    scalars' curvature with the texels refitted is `H_ss - H_st H_tt^-1 H_ts`.
+
+    `H_ts`, each texel's cross curvature with a coordinate k, is one reverse pass with that
+    coordinate's Jacobian column as the cotangent (`sum_p J_pi J_pk`), from each Jacobian with
+    its own seed: their product is unbiased for the noise-free one's. `H_tt` is taken as its
+    diagonal (`curvature`: a texel's own pixels; the bilinear lookup's coupling of neighbours
+    left out), plus a colour texture's smoothness prior (`weights`, the smoother's weight times
+    the grid Laplacian's diagonal). Texels at a bound (`AT_BOUND`: a mask's texel at 1, where
+    a stain is whole, pins the stain's colour) and texels no pixel sees are held."""
+    n = problem.n_material
+    u = np.asarray(u, np.float64)
+    values = np.asarray(to_physical(problem.free, u[:n]), np.float64)
+    h = curvature(problem, u, spp, seed, downscale)
+    diagonal = np.zeros(n)
+    texel = np.zeros(n, bool)
+    i = 0
+    for f in problem.free:
+        if f.shape:
+            part = slice(i, i + f.size)
+            prior = 0.0
+            if weights and np.isfinite(weights.get(f.key, np.inf)):
+                height, width, channels = f.shape
+                lap = np.repeat(laplacian(height, width).diagonal(), channels)
+                prior = weights[f.key] * lap
+            margin = AT_BOUND * (f.spec.upper - f.spec.lower)
+            x = values[part]
+            inside = (x - f.spec.lower > margin) & (f.spec.upper - x > margin)
+            texel[part] = (h[part] > 0) & inside
+            diagonal[part] = h[part] + prior
+        i += f.size
+    if not texel.any():
+        return np.zeros((jacobians[0].shape[1],) * 2)
+    renderer = problem.renderer(downscale)
+    scale = residual_scale(problem, u, downscale)
+    x = values.astype(np.float32)
+    cross = []
+    for j, jac in enumerate(jacobians):
+        columns = []
+        for k in range(jac.shape[1]):
+            cotangent = (scale * jac[:, k]).astype(np.float32)
+            s = seed + TRADE_SEED_OFFSET + 2 * k + j
+            columns.append(renderer.vjp(x, s, spp, cotangent).astype(np.float64)[texel])
+        cross.append(np.stack(columns, axis=1))
+    a1, a2 = cross
+    product = (a1 / diagonal[texel, None]).T @ a2
+    return 0.5 * (product + product.T)
 
 
 def _by_key(problem: Problem, flat: np.ndarray) -> dict:

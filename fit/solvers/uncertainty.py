@@ -147,6 +147,25 @@ def pixel_meat(a: np.ndarray, b: np.ndarray, channels: int = 3) -> np.ndarray:
     return (vectors * np.clip(values, 0.0, None)) @ vectors.T
 
 
+#: The most of the curvature, in any direction, that the textures' trade takes: the scalars'
+#: sd grows at most `1 / sqrt(1 - MAX_TRADE)` times (10x).
+MAX_TRADE = 0.99
+
+
+def traded_inverse(h: np.ndarray, trade: np.ndarray, inverse: np.ndarray) -> np.ndarray:
+    """`(H - T)^-1 - H^-1` on the span of `inverse` (H's inverse where determined): in H's
+    whitened coordinates T's eigenvalues are cut to [0, `MAX_TRADE`] (its estimate is noisy),
+    so the result is positive semi-definite."""
+    values, vectors = np.linalg.eigh(0.5 * (inverse + inverse.T))
+    keep = values > values.max(initial=0.0) * 1e-12
+    root = vectors[:, keep] * np.sqrt(values[keep])  # inverse = root @ root.T
+    whitened = root.T @ np.asarray(trade, np.float64) @ root
+    w, q = np.linalg.eigh(0.5 * (whitened + whitened.T))
+    w = np.clip(w, 0.0, MAX_TRADE)
+    # (I - W)^-1 - I = W (I - W)^-1 in the whitened coordinates
+    return (root @ q) * (w / (1.0 - w)) @ (root @ q).T
+
+
 def averaging_covariance(iterates, gradients, u, h, inverse) -> np.ndarray:
     """The covariance of an averaged answer `u` from the fresh-seed `gradients` at `iterates`
     (rows, one per averaged step): `H^-1 S H^-1 / n`, S the covariance of the gradients' noise
@@ -206,6 +225,7 @@ def uncertainty(
     tail_gradients: tuple[np.ndarray, np.ndarray] | None = None,
     stop: Callable[[], bool] | None = None,
     linearisation: tuple | None = None,
+    trade: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> tuple[dict, np.ndarray, list[str]]:
     """Gauss-Newton covariance at the solver's vector `u` in its sandwich form,
     `H^-1 (sum_p J_p^T r_p r_p^T J_p) H^-1 * N / (N - P)` (p: a pixel's channels; `_meat`) with
@@ -250,6 +270,13 @@ def uncertainty(
     as many samples as the uncertainty did (3.5 s of a 28 s command).
     `stop()` is asked before each render; True (a Ctrl-C) raises `KeyboardInterrupt` there.
 
+    With `trade` (`u`'s coordinates are the scalars of a fit whose textures are held: `trade(J1,
+    J2)` is what the textures take from their curvature H, the Schur complement's term T,
+    `fit.solvers.textures.texel_trade`) the covariance gains `s^2 ((H - T)^-1 - H^-1)`, s^2 the
+    residual's variance per pixel channel: what the scalars' sd is with the texels refitted
+    beside them (a stain's colour trades with its mask's texels), less what it is with them
+    held. T is cut to at most `MAX_TRADE` of H in every direction.
+
     Returns per-parameter standard deviations, the correlation matrix, and the parameters whose
     standard deviation exceeds `threshold` of their range (of their value, for gains and emitter
     scales) or that are not determined at all."""
@@ -292,6 +319,11 @@ def uncertainty(
         dxdu = block_diag(dxdu, problem.gain_jacobian(u[n:]))
     n_obs = int(np.count_nonzero(np.any((jac1 != 0) | (jac2 != 0), axis=1)))
     cov = n_obs / max(n_obs - jac1.shape[1], 1) * bread @ _meat(jac1, jac2, r1, r2) @ bread
+    if trade is not None:
+        r_sq = float(np.sum(np.asarray(r1, np.float64) * np.asarray(r2, np.float64)))
+        sigma2 = max(r_sq, 0.0) / max(n_obs - jac1.shape[1], 1)
+        curv = cross_product(jac1, jac2)
+        cov += sigma2 * traded_inverse(curv, trade(jac1, jac2), bread)
     if tail_gradients is not None and len(tail_gradients[0]) >= 2:
         cov += averaging_covariance(*tail_gradients, u, cross_product(jac1, jac2), bread)
     elif extra_variance is not None:

@@ -59,6 +59,8 @@ softness = 0.005
 #: and from a mask of ones it lost its layers apart (IoU 0.36, ior +0.28). Both: ior within
 #: 0.03, alpha within 5 % (measured 0.005 and 0.019; 2.6 and 1.7 %).
 BOUNDS = {"sphere": (0.9, 0.02, 0.03), "torus": (0.8, 0.03, 0.03)}
+#: The largest error in reported sd of any scalar (see the test).
+SD_BOUND = 8.0
 
 
 @pytest.mark.slow
@@ -97,3 +99,8 @@ free = ["glaze.pigment", "glaze.roughness", "glaze.ior", "stain.reflectance", "s
     assert abs(values["glaze.roughness"] / TRUTH["glaze.roughness"] - 1) <= 0.05
     stain = np.subtract(values["stain.reflectance"], TRUTH["stain.reflectance"])
     assert np.max(np.abs(stain)) <= colour, values["stain.reflectance"]
+    # the scalars' sd with the mask's texels refitted beside them (`texel_trade`): the colours'
+    # errors were 8-22 sd with the texels held, 2-6 sd with the trade (seeds 0-2 of the sphere,
+    # seed 0 of the torus), short of 3 sd
+    over = {k: np.max(np.abs(v)) for k, v in summary["error_over_std"].items()}
+    assert max(over.values()) <= SD_BOUND, over
