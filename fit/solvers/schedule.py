@@ -28,7 +28,7 @@ from .base import Options, PhaseReport, Result
 from .checkpoint import Checkpoint
 from .problem import Problem
 from .registry import SOLVERS
-from .textures import smooth_textures, texel_trade
+from .textures import Smoothed, smooth_textures, texel_trade
 from .uncertainty import forward_mode_refusal, uncertainty
 
 
@@ -227,15 +227,17 @@ def default_schedule(
     )
 
 
-def _trade(problem: Problem, u, phases, seed: int, result: Result):
+def _trade(problem: Problem, u, phases, seed: int, smoothed: Smoothed | None):
     """`trade(J1, J2)` for the uncertainty of the scalars with `problem`'s textures held at `u`
-    (`fit.solvers.textures.texel_trade`, at `TEXTURE_SPP` and the last phase's resolution)."""
-    weights = result.texture_weight
+    (`fit.solvers.textures.texel_trade`, at `TEXTURE_SPP` and the last phase's resolution; with
+    the colour smoother's prior weights and, at full resolution, its curvature)."""
     downscale = phases[-1].downscale
+    weights = smoothed.weight if smoothed is not None else None
+    h = smoothed.curvature if smoothed is not None and downscale == 1 else None
     seed = seed + len(phases)  # the uncertainty's (the trade's renders offset their own)
 
     def trade(jac1, jac2):
-        return texel_trade(problem, u, (jac1, jac2), TEXTURE_SPP, seed, downscale, weights)
+        return texel_trade(problem, u, (jac1, jac2), TEXTURE_SPP, seed, downscale, weights, h)
 
     return trade
 
@@ -471,7 +473,7 @@ def run_schedule(
                 # the last phase's Jacobians, where it solved this problem (not textures held)
                 linearisation=result.linearisation if last is problem else None,
                 # with textures held, what refitting their texels would take from the scalars
-                trade=None if last is problem else _trade(problem, u, phases, seed, result),
+                trade=None if last is problem else _trade(problem, u, phases, seed, smoothed),
                 # a Ctrl-C stops it between two renders (its checkpoint: the last phase's end);
                 # once it is done, the fit is whole and is written
                 stop=None if checkpoint is None else (lambda: checkpoint.stop),

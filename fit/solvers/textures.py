@@ -56,12 +56,13 @@ PROBE_SEED_OFFSET = 0x7E4E1
 @dataclass
 class Smoothed:
     """The smoothed vector, and per texture its texels' sd, the prior weight chosen and the
-    share of its texels seen."""
+    share of its texels seen; the curvature's diagonal it was smoothed with (`curvature`)."""
 
     u: np.ndarray
     std: dict[str, np.ndarray]
     weight: dict[str, float]
     seen: dict[str, float]
+    curvature: np.ndarray
 
 
 def laplacian(height: int, width: int):
@@ -194,7 +195,7 @@ def smooth_textures(problem: Problem, u: np.ndarray, spp: int, seed: int) -> Smo
         i += f.size
     smoothed_u = u.copy()
     smoothed_u[:n] = np.asarray(to_unconstrained(problem.free, _by_key(problem, out)), np.float32)
-    return Smoothed(smoothed_u, std, weights, seen)
+    return Smoothed(smoothed_u, std, weights, seen, h)
 
 
 #: Seed offset of the renders of the scalars' trade with the texels.
@@ -209,6 +210,7 @@ def texel_trade(
     seed: int,
     downscale: int = 1,
     weights: dict[str, float] | None = None,
+    h: np.ndarray | None = None,
 ) -> np.ndarray:
     """What the free textures of `problem` at `u` take from the scalars' curvature: the Schur
     complement's term `H_st H_tt^-1 H_ts` (rows and columns: the held problem's coordinates,
@@ -220,12 +222,14 @@ def texel_trade(
     its own seed: their product is unbiased for the noise-free one's. `H_tt` is taken as its
     diagonal (`curvature`: a texel's own pixels; the bilinear lookup's coupling of neighbours
     left out), plus a colour texture's smoothness prior (`weights`, the smoother's weight times
-    the grid Laplacian's diagonal). Texels at a bound (`AT_BOUND`: a mask's texel at 1, where
+    the grid Laplacian's diagonal; `h`: the curvature's diagonal where the smoother has it at
+    this resolution, else estimated here). Texels at a bound (`AT_BOUND`: a mask's texel at 1, where
     a stain is whole, pins the stain's colour) and texels no pixel sees are held."""
     n = problem.n_material
     u = np.asarray(u, np.float64)
     values = np.asarray(to_physical(problem.free, u[:n]), np.float64)
-    h = curvature(problem, u, spp, seed, downscale)
+    if h is None:
+        h = curvature(problem, u, spp, seed, downscale)
     diagonal = np.zeros(n)
     texel = np.zeros(n, bool)
     i = 0
