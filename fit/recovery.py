@@ -42,7 +42,8 @@ BASE = {"glaze.pigment": (0.1, 0.22, 0.55), "glaze.roughness": 0.1, "glaze.ior":
 #: alpha, which the sweep reports as undetermined (BENCHMARKS).
 SHAPES = ("sphere", "torus", "cup")
 DEFAULT_SHAPES = ("sphere", "torus")
-ALPHAS = (0.01, 0.02, 0.05, 0.1, 0.3, 0.6, 1.0)
+#: Every truth strictly inside alpha's bounds [0.002, 1].
+ALPHAS = (0.005, 0.01, 0.02, 0.05, 0.1, 0.3, 0.6, 0.9)
 IORS = (1.05, 1.3, 1.5, 2.0, 2.8)
 PIGMENTS = {
     "dark": (0.02, 0.02, 0.025),

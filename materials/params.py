@@ -143,7 +143,7 @@ PIGMENT = ParamSpec(
 ROUGHNESS = ParamSpec(
     "roughness",
     0.1,
-    0.01,
+    0.002,
     1.0,
     "sigmoid",
     "",

@@ -39,6 +39,14 @@ FIT_ALBEDO = 0.5
 
 #: (Beckmann alpha, GGX roughness r, relative L2 residual of the lobe), fitted by `fit_ggx`.
 GGX_TABLE: tuple[tuple[float, float, float], ...] = (
+    # albedo within 0.1%; with Fresnel at ior 1.5: residual 0.209, albedo within 0.1%
+    (0.002, 0.0430, 0.2089),
+    # albedo within 0.1%; with Fresnel at ior 1.5: residual 0.209, albedo within 0.1%
+    (0.0025, 0.0481, 0.2089),
+    # albedo within 0.1%; with Fresnel at ior 1.5: residual 0.209, albedo within 0.1%
+    (0.004, 0.0608, 0.2089),
+    # albedo within 0.1%; with Fresnel at ior 1.5: residual 0.209, albedo within 0.1%
+    (0.0063, 0.0763, 0.2089),
     # albedo within 0.1%; with Fresnel at ior 1.5: residual 0.209, albedo within 0.3%
     (0.01, 0.0962, 0.2089),
     # albedo within 0.3%; with Fresnel at ior 1.5: residual 0.210, albedo within 0.7%
@@ -345,7 +353,8 @@ def eon_residual(sigma: float, lambert: bool = False) -> float:
     return float(np.interp(sigma, s, e))
 
 
-GGX_ALPHAS = tuple(float(a) for a in np.round(np.geomspace(0.01, 1.0, 11), 4))
+#: alpha's lower bound, then every fifth of a decade to 1
+GGX_ALPHAS = (0.002,) + tuple(float(a) for a in np.round(np.geomspace(10**-2.6, 1.0, 14), 4))
 EON_SIGMAS = tuple(float(s) for s in np.round(np.linspace(0.0, 1.0, 11), 2))
 
 
