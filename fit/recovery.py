@@ -27,8 +27,14 @@ from captures.scene import Camera, Cup, ObjFile, RectLight, Scene, Sphere, bound
 #: channel, and each error within 3 reported standard deviations.
 ALPHA_REL, IOR_ABS, PIGMENT_ABS, MAX_SIGMAS = 0.05, 0.03, 0.02, 3.0
 
-#: Samples per pixel of a case's target.
+#: Samples per pixel of a case's target, at least (`target_spp`).
 TARGET_SPP = 256
+#: A target's own noise may move alpha's optimum by at most this share of alpha (its sd over
+#: targets, `data_limit`): a third of the target, so that a miss is the fit's, not the target's.
+ALLOWANCE = ALPHA_REL / 3
+#: The most samples per pixel a target gets (three 160x120 views of a glossy torus: the
+#: allowance there needs more; the table prints what it holds).
+MAX_TARGET_SPP = 16384
 
 #: The fits' start (the configs' and the tutorial loop's): grey, rough, low ior.
 START = {"glaze.pigment": [0.5, 0.5, 0.5], "glaze.roughness": 0.2, "glaze.ior": 1.3}
@@ -195,7 +201,8 @@ def capture(case: Case, width: int = 96, height: int = 72, spp: int = TARGET_SPP
 
 @dataclass
 class Outcome:
-    """A case's fitted values, standard deviations and wall time."""
+    """A case's fitted values, standard deviations and wall time; its target's samples per
+    pixel and what they allow alpha (`target_spp`), where known."""
 
     case: Case
     values: dict
@@ -203,6 +210,8 @@ class Outcome:
     seconds: float
     errors: dict = field(init=False)
     sigmas: dict = field(init=False)
+    target_spp: int | None = None
+    allowance: float | None = None
 
     def __post_init__(self):
         truth = self.case.truth()
@@ -231,7 +240,11 @@ class Outcome:
     def from_dict(cls, case: Case, saved: dict) -> Outcome:
         """An outcome saved by `as_dict` (an undetermined sd, saved as null, infinite again)."""
         std = {k: _map(v, lambda x: math.inf if x is None else x) for k, v in saved["std"].items()}
-        return cls(case, saved["values"], std, saved["seconds"])
+        allowance = saved.get("allowance", math.nan)
+        allowance = math.inf if allowance is None else allowance
+        out = cls(case, saved["values"], std, saved["seconds"], saved.get("target_spp"))
+        out.allowance = None if math.isnan(allowance) else allowance
+        return out
 
     def as_dict(self) -> dict:
         """The outcome as strict JSON values (an undetermined, infinite sd as null)."""
@@ -244,16 +257,37 @@ class Outcome:
             "errors": self.errors,
             "sigmas": self.sigmas,
             "seconds": self.seconds,
+            "target_spp": self.target_spp,
+            "allowance": None if self.allowance is None else strict(self.allowance),
             "within_targets": self.within_targets(),
             "within_sigmas": self.within_sigmas(),
             "passed": self.passed(),
         }
 
 
-def case_target(case: Case, width: int, height: int) -> Capture:
+def case_target(case: Case, width: int, height: int, spp: int = TARGET_SPP) -> Capture:
     """The case's target, rendered with seeds of its own: with shared ones, every case's fit
     inherits the same noise realisation (the sweep's ior errors all came out positive)."""
-    return capture(case, width, height, seed=zlib.crc32(case.name.encode()) % 100_000)
+    return capture(case, width, height, spp, seed=zlib.crc32(case.name.encode()) % 100_000)
+
+
+#: `data_limit`'s Jacobian samples and noise pairs when it picks a target's samples (at 1024 and
+#: 8 it took 45 s a case at 160x120).
+TARGET_LIMIT_SPP, TARGET_LIMIT_PAIRS = 128, 4
+
+
+def target_spp(case: Case, width: int, height: int) -> tuple[int, float]:
+    """The samples per pixel of the case's clean target and what it allows alpha (its sd over
+    such targets, `data_limit`, as a share of alpha; infinite where undetermined): `TARGET_SPP`
+    doubled until that share is within `ALLOWANCE`, at most `MAX_TARGET_SPP` (the sd falls as
+    one over the root of the samples). A cheaper `data_limit` than the bench's for its misses
+    (`TARGET_LIMIT_SPP`, `TARGET_LIMIT_PAIRS`): it picks a power of two."""
+    limit = data_limit(case, width, height, TARGET_LIMIT_SPP, pairs=TARGET_LIMIT_PAIRS)
+    sd = limit["glaze.roughness"] / case.roughness
+    spp = TARGET_SPP
+    while spp < MAX_TARGET_SPP and not sd * math.sqrt(TARGET_SPP / spp) <= ALLOWANCE:
+        spp *= 2
+    return spp, sd * math.sqrt(TARGET_SPP / spp)
 
 
 def _map(value, f):
@@ -274,17 +308,22 @@ def recover(
     seed: int = 0,
     target: Capture | None = None,
 ) -> Outcome:
-    """Fit `case` back from `START` with `schedule` (the default one unless given)."""
+    """Fit `case` back from `START` with `schedule` (the default one unless given), against
+    `target` (default: the case's clean target, at `target_spp`)."""
     from .material import resolve
     from .solvers import DEFAULT_SCHEDULE, Problem, run_schedule
 
-    target = target or case_target(case, width, height)
+    spp = allowance = None
+    if target is None:
+        spp, allowance = target_spp(case, width, height)
+        target = case_target(case, width, height, spp)
     material = glaze(START)
     problem = Problem(target, material, resolve(material, list(KEYS)))
     began = time.perf_counter()
     result = run_schedule(problem, START, schedule or DEFAULT_SCHEDULE, seed)
     seconds = time.perf_counter() - began
-    return Outcome(case, {k: result.values[k] for k in KEYS}, dict(result.std), seconds)
+    values = {k: result.values[k] for k in KEYS}
+    return Outcome(case, values, dict(result.std), seconds, spp, allowance)
 
 
 #: Samples per pixel of each of `data_limit`'s two Jacobian renders, and its pairs of renders
@@ -300,6 +339,7 @@ def data_limit(
     spp: int = LIMIT_SPP,
     target_spp: int = TARGET_SPP,
     seed: int = 0,
+    pairs: int = NOISE_PAIRS,
 ) -> dict:
     """What the case's targets allow: each parameter's standard deviation, over targets rendered
     at `target_spp`, of the least-squares optimum against one (`H^-1 J^T e`, e a target's noise),
@@ -335,9 +375,9 @@ def data_limit(
         return sqrt_w * (a - b) / np.sqrt(2.0)
 
     # every pair's terms stacked: the meat is their mean, its positive part taken once
-    noises = [target_noise(k) for k in range(NOISE_PAIRS)]
+    noises = [target_noise(k) for k in range(pairs)]
     meat = pixel_meat(*(np.concatenate([j * e[:, None] for e in noises]) for j in (j1, j2)))
-    meat /= NOISE_PAIRS
+    meat /= pairs
     bread, undetermined = inverse_determined(cross_product(j1, j2))
     std = np.sqrt(np.clip(np.diag(bread @ meat @ bread), 0.0, None))
     std[undetermined] = np.inf
@@ -345,7 +385,8 @@ def data_limit(
 
 
 def calibration_rows(outcomes: list[Outcome]) -> list[list[str]]:
-    """Per case: each parameter's error and error/sigma, a mark where a target is missed."""
+    """Per case: each parameter's error and error/sigma, a mark where a target is missed, and
+    the target's samples per pixel with what they allow alpha."""
     rows = []
     for o in outcomes:
         targets, sigmas = o.within_targets(), o.within_sigmas()
@@ -368,7 +409,21 @@ def calibration_rows(outcomes: list[Outcome]) -> list[list[str]]:
                 f"{o.errors['glaze.pigment'][pig]:+.4f} ({sd('glaze.pigment', pig)})"
                 + mark("glaze.pigment"),
                 f"{o.seconds:.0f}",
+                _target(o),
                 "yes" if o.passed() else "no",
             ]
         )
     return rows
+
+
+def _target(outcome: Outcome) -> str:
+    """`spp (allows alpha x %)`, or `-` for an outcome of a target given."""
+    if outcome.target_spp is None:
+        return "-"
+    allowance = outcome.allowance
+    allows = (
+        "undetermined"
+        if allowance is None or not math.isfinite(allowance)
+        else (f"{100 * allowance:.1f} %")
+    )
+    return f"{outcome.target_spp} ({allows})"

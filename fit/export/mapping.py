@@ -354,7 +354,7 @@ def eon_residual(sigma: float, lambert: bool = False) -> float:
 
 
 #: alpha's lower bound, then every fifth of a decade to 1
-GGX_ALPHAS = (0.002,) + tuple(float(a) for a in np.round(np.geomspace(10**-2.6, 1.0, 14), 4))
+GGX_ALPHAS = (0.002, *(float(a) for a in np.round(np.geomspace(10**-2.6, 1.0, 14), 4)))
 EON_SIGMAS = tuple(float(s) for s in np.round(np.linspace(0.0, 1.0, 11), 2))
 
 

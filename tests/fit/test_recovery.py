@@ -56,25 +56,18 @@ def test_calibration_table_resumes_and_refuses_a_foreign_file(tmp_path, monkeypa
         fitted.append(case.name)
         values = case.truth() | {"glaze.roughness": case.roughness * 1.5}
         std = {"glaze.pigment": [0.01] * 3, "glaze.roughness": 0.01, "glaze.ior": 0.01}
-        return recovery.Outcome(case, values, std, 1.0)
-
-    limited = []
-
-    def limit(case, width, height):
-        limited.append(case.name)
-        return {"glaze.pigment": [0.001] * 3, "glaze.roughness": 0.02, "glaze.ior": math.inf}
+        return recovery.Outcome(case, values, std, 1.0, 1024, math.inf)
 
     monkeypatch.setattr(recovery, "recover", fake)
-    monkeypatch.setattr(recovery, "data_limit", limit)
     results = tmp_path / "r.json"
     table = bench.recovery_table([case], 16, 12, results)
     assert fitted == [case.name] and table.rows[0][-1] == "no" and "✗" in table.rows[0][1]
     assert "0 of 1 cases" in table.notes[0]
-    # the miss's limit: alpha's sd relative to its truth (0.02 of 0.1), saved as strict JSON
-    assert limited == [case.name] and "sphere: base: 20.0 %" in table.notes[2]
-    assert json.loads(results.read_text())["cases"][case.name]["limit"]["glaze.ior"] is None
-    bench.recovery_table([case], 16, 12, results)
-    assert fitted == [case.name] and limited == [case.name]  # read back, limit included
+    # the target's spp and what it allows alpha (undetermined: saved as strict JSON's null)
+    assert table.rows[0][-2] == "1024 (undetermined)"
+    assert json.loads(results.read_text())["cases"][case.name]["allowance"] is None
+    again = bench.recovery_table([case], 16, 12, results)
+    assert fitted == [case.name] and again.rows == table.rows  # read back, not fitted again
     with pytest.raises(ValueError, match="another size"):
         bench.recovery_table([case], 32, 24, results)
     results.write_text("not json")

@@ -346,10 +346,10 @@ def test_gauss_newton_auto_split_follows_the_residual(problem, monkeypatch):
 def test_gauss_newton_averages_without_bias_next_to_a_bound(problem, monkeypatch):
     """`gn` steps and averages in the solver's space (the sigmoid's logits), where a linear
     image's noise does not average to an upward drift. On an exact linear image with its
-    optimum at alpha 0.004 (twice its sigmoid's bound 0.002) plus image noise of a fresh seed each step
-    (each iterate's alpha about 30 % off), the mean of 360 steps lands within 6 % of the optimum
-    (seeds 1-3: -2.5 to +2.6 %; the iterates' arithmetic mean in alpha: +4 to +9 %). Stepping and
-    averaging in alpha itself, with the same largest step in logits, ended -5 to -10 %."""
+    optimum at alpha 0.004 (twice its sigmoid's bound 0.002) plus image noise of a fresh seed
+    each step (each iterate's alpha about 30 % off), the mean of 360 steps lands within 6 % of
+    the optimum (BENCHMARKS, "Low alpha": at twice the bound the iterates' arithmetic mean in
+    alpha was +4 to +9 % off, stepping and averaging in alpha itself -5 to -10 %)."""
     truth = {"glaze.pigment": [0.1, 0.22, 0.55], "glaze.roughness": 0.004, "glaze.ior": 1.52}
     _noisy_linear_images(problem, monkeypatch, truth, 0.3)
     result = _gn(problem, problem.unconstrained(truth), 400, refresh=400, average=0.9, eta=1.0)
