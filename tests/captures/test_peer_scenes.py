@@ -293,7 +293,7 @@ def test_a_peer_target_is_checked_as_a_manifest_is(tmp_path):
 
 
 def test_a_peer_truth_outside_the_bounds_is_fitted_not_scored(tmp_path, caplog):
-    """A Cycles glaze of roughness 0.08 (alpha 0.0064, below the glaze's 0.01) could not be
+    """A Cycles glaze of roughness 0.04 (alpha 0.0016, below the glaze's 0.002) could not be
     fitted at all: its truth was refused as a manifest's is ("choose a value inside them",
     which a peer's user cannot). The fit runs; that key is warned and not scored."""
     import logging
@@ -301,7 +301,7 @@ def test_a_peer_truth_outside_the_bounds_is_fitted_not_scored(tmp_path, caplog):
     from fit.commands.prepare import check_truth
     from fit.material import build_material, resolve
 
-    material = {"base_color": [0.5, 0.4, 0.3], "specular_roughness": 0.08, "ior": 1.5}
+    material = {"base_color": [0.5, 0.4, 0.3], "specular_roughness": 0.04, "ior": 1.5}
     path = _peer_folder(tmp_path / "peer", "view_00.exr", material)
     write_image(tmp_path / "peer" / "view_00.exr", np.full((6, 8, 3), 0.2, np.float32))
     capture = peer_capture(path)
@@ -309,7 +309,7 @@ def test_a_peer_truth_outside_the_bounds_is_fitted_not_scored(tmp_path, caplog):
     free = resolve(glaze, ["glaze.roughness", "glaze.ior"])
     with caplog.at_level(logging.WARNING):
         check_truth(capture, free, path, glaze)
-    assert "truth.glaze.roughness = 0.0064" in caplog.text and "not scored" in caplog.text
+    assert "truth.glaze.roughness = 0.0016" in caplog.text and "not scored" in caplog.text
     assert "glaze.roughness" not in capture.truth and capture.truth["glaze.ior"] == 1.5
 
 
