@@ -30,12 +30,12 @@ def test_recovered_within_targets_and_three_sigma(case):
 
 @pytest.mark.slow
 def test_sweep_is_calibrated():
-    """Half the sweep's cases at 160x120 (about 6 minutes on 2 cores): the sphere's first, third
-    and so on, the torus's second, fourth and so on, so every alpha, ior and pigment is fitted
-    on one shape or the other. At least 90 % of the cases have every error within 3 reported
-    sd (the honest-uncertainty half of the calibration; the whole sweep, and which cases meet
-    the accuracy targets, is the bench's table: `bash scripts/bench_recovery.sh`,
-    BENCHMARKS)."""
+    """Half the sweep's cases at 160x120, each against its clean target (about 9 minutes on 2
+    cores): the sphere's first, third and so on, the torus's second, fourth and so on, so every
+    alpha, ior and pigment is fitted on one shape or the other. At least 90 % of the cases have
+    every error within 3 reported sd (the honest-uncertainty half of the calibration; the whole
+    sweep, and which cases meet the accuracy targets, is the bench's table: `bash
+    scripts/bench_recovery.sh`, BENCHMARKS)."""
     sphere = [c for c in recovery.sweep() if c.shape == "sphere"]
     torus = [c for c in recovery.sweep() if c.shape == "torus"]
     cases = sphere[::2] + torus[1::2]
