@@ -410,3 +410,65 @@ def test_a_precise_phase_resumes_to_the_same_end(problem, monkeypatch):
         resumed = _gn(problem, u0, 8, resume=saved, **options)
         assert resumed.steps == whole.steps, stop
         np.testing.assert_allclose(resumed.u, whole.u, rtol=1e-5, atol=1e-6)
+
+
+def _flat_below_images(problem, monkeypatch, truth, share):
+    """Images whose alpha column acts only above the truth's alpha (softly, over a tenth of
+    it): below it the loss is flat, as a lobe narrower than a pixel and the light's reflection
+    leaves it, steep above. Other columns linear; image noise of a fresh seed each render, sized
+    so that one step's alpha is about `share` of its value off."""
+    target, _ = problem.target(1)
+    jac = np.random.default_rng(0).normal(size=(target.size, 5)).astype(np.float32) * 0.05
+    x_opt = np.array([*truth["glaze.pigment"], truth["glaze.roughness"], truth["glaze.ior"]])
+    alpha, soft = truth["glaze.roughness"], 0.1 * truth["glaze.roughness"]
+    noise = share * alpha * 0.05 * np.sqrt(target.size)
+
+    def bent(x):  # alpha through a softplus: flat below the truth, slope 1 above
+        ramp = soft * jax.nn.softplus((x[3] - alpha) / soft)
+        return x.at[3].set(ramp - soft * np.log(2.0) + alpha)
+
+    def image(x, seed=None):
+        clean = jnp.asarray(target) + jnp.asarray(jac) @ (bent(x) - jnp.asarray(x_opt, jnp.float32))
+        if seed is None:
+            return clean
+        return clean + noise * jax.random.normal(jax.random.PRNGKey(seed), (target.size,))
+
+    class Bent:
+        def jacobian(self, values, seed, spp):
+            x = jnp.asarray(values)
+            slope = np.asarray(jax.jacfwd(bent)(x))
+            return np.asarray(image(x, seed)), jac @ slope
+
+    monkeypatch.setattr(problem, "render_fn", lambda *a, **k: image)
+    monkeypatch.setattr(problem, "renderer", lambda downscale=1: Bent())
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason=(
+        "2026-12-05: the default's averaged phase walks down the flat side: over seeds 1-6 alpha "
+        "0.0084 on average (-16 %), spread 27 %. Capped at 0.1 a step (`max_step`) it ends "
+        "0.0103, spread 9 %, but on the recovery sweep that cap also kept unfinished relaxations "
+        "unfinished (the sphere at alpha 0.005: +65 % against -18 %), so the default keeps 1"
+    ),
+)
+def test_the_averaged_phase_does_not_walk_down_a_flat_side(problem, monkeypatch):
+    """The default's averaged phase, started at the truth's alpha 0.01 where the loss is flat
+    below and steep above (`_flat_below_images`), each step's alpha about 60 % off: over six
+    seeds its answers average within 5 % of the truth and spread less than 15 %. Steps of up
+    to 1 in the sigmoid's coordinate (a factor e in alpha less its bound) walk it down the flat
+    side, where nothing brings it back: the sphere at alpha 0.01 against a clean target ended
+    0.0039 (BENCHMARKS, "Recovery over the range")."""
+    from fit.solvers import DEFAULT_SCHEDULE
+
+    truth = {"glaze.pigment": [0.1, 0.22, 0.55], "glaze.roughness": 0.01, "glaze.ior": 1.52}
+    _flat_below_images(problem, monkeypatch, truth, 0.6)
+    last = DEFAULT_SCHEDULE[-1]
+    u0 = problem.unconstrained(truth)
+    options = last.options.model_dump()
+    alphas = [
+        _gn(problem, u0, last.steps, seed=s, **options).values["glaze.roughness"]
+        for s in range(1, 7)
+    ]
+    assert np.mean(alphas) == pytest.approx(0.01, rel=0.05), alphas
+    assert np.std(alphas) < 0.15 * 0.01, alphas
