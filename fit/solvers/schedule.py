@@ -227,17 +227,18 @@ def default_schedule(
     )
 
 
-def _trade(problem: Problem, u, phases, seed: int, smoothed: Smoothed | None):
+def _trade(problem: Problem, u, phases, seed: int, smoothed: Smoothed | None, stop=None):
     """`trade(J1, J2)` for the uncertainty of the scalars with `problem`'s textures held at `u`
     (`fit.solvers.textures.texel_trade`, at `TEXTURE_SPP` and the last phase's resolution; with
-    the colour smoother's prior weights and, at full resolution, its curvature)."""
+    the colour smoother's prior weights and, at full resolution, its curvature; `stop` as the
+    uncertainty's)."""
     downscale = phases[-1].downscale
     weights = smoothed.weight if smoothed is not None else None
     h = smoothed.curvature if smoothed is not None and downscale == 1 else None
     seed = seed + len(phases)  # the uncertainty's (the trade's renders offset their own)
 
     def trade(jac1, jac2):
-        return texel_trade(problem, u, (jac1, jac2), TEXTURE_SPP, seed, downscale, weights, h)
+        return texel_trade(problem, u, (jac1, jac2), TEXTURE_SPP, seed, downscale, weights, h, stop)
 
     return trade
 
@@ -457,6 +458,7 @@ def run_schedule(
     )
     if problem.textures and phases[-1].solver == "adam":
         result.tail_variance = result.tail_gradients = None  # of all coordinates, not the held
+    stop = None if checkpoint is None else (lambda: checkpoint.stop)
     if forward_mode_refusal(last) is None:  # else no sd: std stays None
         with timing.timed("uncertainty"):
             result.std, result.correlation, result.poorly_determined = uncertainty(
@@ -473,10 +475,10 @@ def run_schedule(
                 # the last phase's Jacobians, where it solved this problem (not textures held)
                 linearisation=result.linearisation if last is problem else None,
                 # with textures held, what refitting their texels would take from the scalars
-                trade=None if last is problem else _trade(problem, u, phases, seed, smoothed),
+                trade=None if last is problem else _trade(problem, u, phases, seed, smoothed, stop),
                 # a Ctrl-C stops it between two renders (its checkpoint: the last phase's end);
                 # once it is done, the fit is whole and is written
-                stop=None if checkpoint is None else (lambda: checkpoint.stop),
+                stop=stop,
             )
     result.linearisation = None  # the uncertainty's only: not carried on (a start's Ray result)
     return result

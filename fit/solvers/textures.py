@@ -211,6 +211,7 @@ def texel_trade(
     downscale: int = 1,
     weights: dict[str, float] | None = None,
     h: np.ndarray | None = None,
+    stop=None,
 ) -> np.ndarray:
     """What the free textures of `problem` at `u` take from the scalars' curvature: the Schur
     complement's term `H_st H_tt^-1 H_ts` (rows and columns: the held problem's coordinates,
@@ -224,7 +225,8 @@ def texel_trade(
     left out), plus a colour texture's smoothness prior (`weights`, the smoother's weight times
     the grid Laplacian's diagonal; `h`: the curvature's diagonal where the smoother has it at
     this resolution, else estimated here). Texels at a bound (`AT_BOUND`: a mask's texel at 1, where
-    a stain is whole, pins the stain's colour) and texels no pixel sees are held."""
+    a stain is whole, pins the stain's colour) and texels no pixel sees are held. `stop()` is
+    asked before each reverse pass; True (a Ctrl-C) raises `KeyboardInterrupt` there."""
     n = problem.n_material
     u = np.asarray(u, np.float64)
     values = np.asarray(to_physical(problem.free, u[:n]), np.float64)
@@ -256,6 +258,8 @@ def texel_trade(
     for j, jac in enumerate(jacobians):
         columns = []
         for k in range(jac.shape[1]):
+            if stop is not None and stop():
+                raise KeyboardInterrupt
             cotangent = (scale * jac[:, k]).astype(np.float32)
             s = seed + TRADE_SEED_OFFSET + 2 * k + j
             columns.append(renderer.vjp(x, s, spp, cotangent).astype(np.float64)[texel])

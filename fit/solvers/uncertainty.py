@@ -152,7 +152,7 @@ def pixel_meat(a: np.ndarray, b: np.ndarray, channels: int = 3) -> np.ndarray:
 MAX_TRADE = 0.99
 
 
-def traded_inverse(h: np.ndarray, trade: np.ndarray, inverse: np.ndarray) -> np.ndarray:
+def traded_inverse(trade: np.ndarray, inverse: np.ndarray) -> np.ndarray:
     """`(H - T)^-1 - H^-1` on the span of `inverse` (H's inverse where determined): in H's
     whitened coordinates T's eigenvalues are cut to [0, `MAX_TRADE`] (its estimate is noisy),
     so the result is positive semi-definite."""
@@ -322,8 +322,7 @@ def uncertainty(
     if trade is not None:
         r_sq = float(np.sum(np.asarray(r1, np.float64) * np.asarray(r2, np.float64)))
         sigma2 = max(r_sq, 0.0) / max(n_obs - jac1.shape[1], 1)
-        curv = cross_product(jac1, jac2)
-        cov += sigma2 * traded_inverse(curv, trade(jac1, jac2), bread)
+        cov += sigma2 * traded_inverse(trade(jac1, jac2), bread)
     if tail_gradients is not None and len(tail_gradients[0]) >= 2:
         cov += averaging_covariance(*tail_gradients, u, cross_product(jac1, jac2), bread)
     elif extra_variance is not None:

@@ -39,7 +39,7 @@ def test_the_traded_inverse_is_the_marginal_covariance_of_a_linear_model(seed):
     trade = a.T @ (a / np.diag(jt.T @ jt)[:, None])
     assert np.linalg.eigvalsh(h - trade).min() > 0  # the rows keep every scalar determined
     held = np.linalg.inv(h)
-    np.testing.assert_allclose(held + traded_inverse(h, trade, held), marginal, rtol=1e-8)
+    np.testing.assert_allclose(held + traded_inverse(trade, held), marginal, rtol=1e-8)
 
 
 def test_a_noisy_trade_is_cut_to_a_positive_bounded_inflation():
@@ -47,10 +47,31 @@ def test_a_noisy_trade_is_cut_to_a_positive_bounded_inflation():
     inflates the variance by at most `1 / (1 - MAX_TRADE)`."""
     h = np.diag([4.0, 1.0])
     inverse = np.linalg.inv(h)
-    extra = traded_inverse(h, np.diag([-3.0, 5.0]), inverse)
+    extra = traded_inverse(np.diag([-3.0, 5.0]), inverse)
     assert np.linalg.eigvalsh(extra).min() >= -1e-12
     assert extra[0, 0] == pytest.approx(0.0, abs=1e-12)
     assert 1.0 + extra[1, 1] == pytest.approx(1.0 / (1.0 - MAX_TRADE))
+
+
+def pigment_texture_problem(width: int = 12, height: int = 12):
+    """The glazed sphere's first view, small, its pigment a free 4x4 texture beside its ior;
+    the solver's vector at the start (the truth)."""
+    cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
+    camera = dataclasses.replace(cfg.scene.cameras[0], width=width, height=height)
+    scene = dataclasses.replace(cfg.scene, cameras=(camera,))
+    image = render(load_scene(scene_dict(scene, cfg.material, 0, 64)), 256, seed=5)
+    capture = Capture(scene, [View("v", image, np.ones((height, width), np.float32), camera)])
+    material = with_free_textures(cfg.material, {"glaze.pigment": (4, 4)})
+    problem = Problem(capture, material, resolve(material, ["glaze.pigment", "glaze.ior"]))
+    return problem, problem.unconstrained({f.key: f.start for f in problem.free})
+
+
+def test_a_stop_asked_for_ends_the_trade_before_its_renders():
+    """A Ctrl-C during the uncertainty's trade stops it before the next reverse pass."""
+    problem, u = pigment_texture_problem(4, 4)
+    jac = np.ones((4 * 4 * 3, 1))
+    with pytest.raises(KeyboardInterrupt):
+        texel_trade(problem, u, (jac, jac), 4, 0, h=np.ones(problem.n_material), stop=lambda: True)
 
 
 def test_the_trade_matches_the_texels_rendered_jacobian():
@@ -58,15 +79,7 @@ def test_the_trade_matches_the_texels_rendered_jacobian():
     more and lets less through to the pigment): the trade from one reverse pass per Jacobian
     column and the curvature's probes against the texels' Jacobian rendered row by row (one
     reverse pass per pixel channel, 432 of them), `a^T diag(J_t^T J_t)^-1 a`."""
-    cfg = load_render_config(ROOT / "configs" / "glazed-sphere.toml")
-    width, height = 12, 12
-    camera = dataclasses.replace(cfg.scene.cameras[0], width=width, height=height)
-    scene = dataclasses.replace(cfg.scene, cameras=(camera,))
-    image = render(load_scene(scene_dict(scene, cfg.material, 0, 64)), 256, seed=5)
-    capture = Capture(scene, [View("v", image, np.ones((height, width), np.float32), camera)])
-    material = with_free_textures(cfg.material, {"glaze.pigment": (4, 4)})
-    problem = Problem(capture, material, resolve(material, ["glaze.pigment", "glaze.ior"]))
-    u = problem.unconstrained({f.key: f.start for f in problem.free})
+    problem, u = pigment_texture_problem()
     held, take, _ = problem.holding_textures(u)
     jac1 = finite_rows(*linearised(held, take(u), 64, 1))[1]
     jac2 = finite_rows(*linearised(held, take(u), 64, 2))[1]
