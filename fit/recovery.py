@@ -240,11 +240,11 @@ class Outcome:
     def from_dict(cls, case: Case, saved: dict) -> Outcome:
         """An outcome saved by `as_dict` (an undetermined sd, saved as null, infinite again)."""
         std = {k: _map(v, lambda x: math.inf if x is None else x) for k, v in saved["std"].items()}
-        allowance = saved.get("allowance", math.nan)
-        allowance = math.inf if allowance is None else allowance
-        out = cls(case, saved["values"], std, saved["seconds"], saved.get("target_spp"))
-        out.allowance = None if math.isnan(allowance) else allowance
-        return out
+        allowance = saved.get("allowance")  # absent: a target given; null: undetermined
+        if "allowance" in saved and allowance is None:
+            allowance = math.inf
+        spp = saved.get("target_spp")
+        return cls(case, saved["values"], std, saved["seconds"], spp, allowance)
 
     def as_dict(self) -> dict:
         """The outcome as strict JSON values (an undetermined, infinite sd as null)."""
@@ -257,8 +257,11 @@ class Outcome:
             "errors": self.errors,
             "sigmas": self.sigmas,
             "seconds": self.seconds,
-            "target_spp": self.target_spp,
-            "allowance": None if self.allowance is None else strict(self.allowance),
+            **(
+                {"target_spp": self.target_spp, "allowance": strict(self.allowance)}
+                if self.target_spp is not None and self.allowance is not None
+                else {}
+            ),
             "within_targets": self.within_targets(),
             "within_sigmas": self.within_sigmas(),
             "passed": self.passed(),
@@ -280,8 +283,8 @@ def target_spp(case: Case, width: int, height: int) -> tuple[int, float]:
     """The samples per pixel of the case's clean target and what it allows alpha (its sd over
     such targets, `data_limit`, as a share of alpha; infinite where undetermined): `TARGET_SPP`
     doubled until that share is within `ALLOWANCE`, at most `MAX_TARGET_SPP` (the sd falls as
-    one over the root of the samples). A cheaper `data_limit` than the bench's for its misses
-    (`TARGET_LIMIT_SPP`, `TARGET_LIMIT_PAIRS`): it picks a power of two."""
+    one over the root of the samples). From a cheaper `data_limit` than its default
+    (`TARGET_LIMIT_SPP`, `TARGET_LIMIT_PAIRS`): it only picks a power of two."""
     limit = data_limit(case, width, height, TARGET_LIMIT_SPP, pairs=TARGET_LIMIT_PAIRS)
     sd = limit["glaze.roughness"] / case.roughness
     spp = TARGET_SPP
