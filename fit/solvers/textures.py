@@ -28,7 +28,12 @@ Each texel's sd is `sigma sqrt(((H + lambda L)^-1)_ii)` (sigma^2 the residual's 
 pixel; the diagonal by Hutchinson's estimator, at least `1 / (h_i + lambda L_ii)`), at most the
 sd of a value uniform over its bounds (`(upper - lower) / sqrt(12)`: what a texel no pixel sees
 is known to be). The texels' coupling through the bilinear lookup and through the scalars is
-not in it."""
+not in it.
+
+The scalars' sd, the other way round, counts what the texels take from them: `texel_trade`,
+the Schur complement's term of the curvature (each texel's cross curvature with a scalar from
+one reverse pass per scalar, `H_tt` the diagonal above), which the uncertainty adds
+(`fit.solvers.uncertainty.traded_inverse`)."""
 
 from __future__ import annotations
 
