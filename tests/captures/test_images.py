@@ -381,3 +381,33 @@ def test_a_downscaled_mask_keeps_its_coverage_meaning(coverage, expected):
     capture = Capture(Scene(Sphere(), (camera,)), [view])
     small = capture.downscaled(4).views[0].mask
     assert small.shape == (2, 2) and int(small.sum()) == expected and small[0, 0] == bool(expected)
+
+
+@pytest.mark.parametrize("factor", [2, 3, 4, 7])
+def test_a_downscaled_outline_leaves_out_pixels_partly_over_the_background(factor):
+    """A disc whose mask leaves the background out of the weights: an output pixel partly over
+    that background gets weight 0 (the photo's mean there is the disc's alone, a render's the
+    whole area's); pixels wholly on the disc keep their mean and weight, and one left out
+    inside the mask (a saturated pixel) still only lowers its pixel's weight."""
+    from captures.capture import Capture, View
+    from captures.scene import Camera, Scene, Sphere
+
+    n = 60
+    yy, xx = np.mgrid[0:n, 0:n]
+    disc = (xx + 0.5 - n / 2) ** 2 + (yy + 0.5 - n / 2) ** 2 <= (0.4 * n) ** 2
+    image = np.where(disc[..., None], 0.6, 0.0).astype(np.float32) * np.ones(3, np.float32)
+    weight = disc.astype(np.float32)
+    weight[n // 2, n // 2] = 0.0  # saturated, inside the disc
+    camera = Camera((0.0, -5.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 30.0, n, n)
+    view = dataclasses.replace(View("v", image, weight, camera), mask=disc)
+    small = Capture(Scene(Sphere(), (camera,)), [view]).downscaled(factor).views[0]
+    plain_image, plain = downscale(image, weight, factor)
+    share = downscale(disc[..., None] * np.ones(3), np.ones((n, n)), factor)[0][..., 0]
+    partly, kept = (plain > 0) & (share < 1 - 1e-6), share > 1 - 1e-6
+    assert partly.any() and np.all(small.weight[partly] == 0)
+    assert kept.sum() >= 9 and np.all(small.weight[kept] > 0)
+    np.testing.assert_array_equal(small.weight[kept], plain[kept])
+    np.testing.assert_allclose(small.image[kept], 0.6, rtol=1e-6)
+    centre = small.weight[kept].min()  # the saturated pixel's block: lowered, not dropped
+    assert 0.5 < centre < 1.0
+    np.testing.assert_array_equal(small.image[kept], plain_image[kept])
