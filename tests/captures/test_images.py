@@ -384,11 +384,13 @@ def test_a_downscaled_mask_keeps_its_coverage_meaning(coverage, expected):
 
 
 @pytest.mark.parametrize("factor", [2, 3, 4, 7])
-def test_a_downscaled_outline_leaves_out_pixels_partly_over_the_background(factor):
-    """A disc whose mask leaves the background out of the weights: an output pixel partly over
-    that background gets weight 0 (the photo's mean there is the disc's alone, a render's the
-    whole area's); pixels wholly on the disc keep their mean and weight, and one left out
-    inside the mask (a saturated pixel) still only lowers its pixel's weight."""
+def test_a_downscaled_photo_leaves_out_pixels_partly_over_what_a_render_would_not(factor):
+    """A disc whose mask leaves the background out of the weights, with a clipped highlight
+    (a bright pixel left out) and a clipped black (a black one left out) on it. Area-averaged,
+    an output pixel partly over the background or the highlight gets weight 0 (the photo's
+    mean there leaves out what a render's takes in); one partly over the black pixel keeps its
+    valid share (its true value is about a render's); pixels wholly on the disc keep their
+    mean and weight."""
     from captures.capture import Capture, View
     from captures.scene import Camera, Scene, Sphere
 
@@ -397,17 +399,28 @@ def test_a_downscaled_outline_leaves_out_pixels_partly_over_the_background(facto
     disc = (xx + 0.5 - n / 2) ** 2 + (yy + 0.5 - n / 2) ** 2 <= (0.4 * n) ** 2
     image = np.where(disc[..., None], 0.6, 0.0).astype(np.float32) * np.ones(3, np.float32)
     weight = disc.astype(np.float32)
-    weight[n // 2, n // 2] = 0.0  # saturated, inside the disc
+    bright, black = (n // 2, n // 2), (n // 2 + 7, n // 2)
+    image[bright], weight[bright] = 5.0, 0.0  # saturated
+    image[black], weight[black] = 0.0, 0.0  # clipped black
     camera = Camera((0.0, -5.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 30.0, n, n)
     view = dataclasses.replace(View("v", image, weight, camera), mask=disc)
     small = Capture(Scene(Sphere(), (camera,)), [view]).downscaled(factor).views[0]
     plain_image, plain = downscale(image, weight, factor)
-    share = downscale(disc[..., None] * np.ones(3), np.ones((n, n)), factor)[0][..., 0]
-    partly, kept = (plain > 0) & (share < 1 - 1e-6), share > 1 - 1e-6
+
+    def over(pixels):  # output pixels whose area is partly over these input pixels
+        return downscale(pixels[..., None] * np.ones(3), np.ones((n, n)), factor)[0][..., 0] > 0
+
+    on_disc = ~over(~disc)
+    partly = (plain > 0) & ~on_disc
+    lit = np.zeros((n, n), bool)
+    lit[bright] = True
+    dark = np.zeros((n, n), bool)
+    dark[black] = True
     assert partly.any() and np.all(small.weight[partly] == 0)
+    assert np.all(small.weight[over(lit)] == 0)
+    kept = on_disc & ~over(lit)
     assert kept.sum() >= 9 and np.all(small.weight[kept] > 0)
     np.testing.assert_array_equal(small.weight[kept], plain[kept])
-    np.testing.assert_allclose(small.image[kept], 0.6, rtol=1e-6)
-    centre = small.weight[kept].min()  # the saturated pixel's block: lowered, not dropped
-    assert 0.5 < centre < 1.0
     np.testing.assert_array_equal(small.image[kept], plain_image[kept])
+    np.testing.assert_allclose(small.image[kept], 0.6, rtol=1e-6)
+    assert (kept & over(dark)).any() and np.all(small.weight[kept & over(dark)] < 1)
