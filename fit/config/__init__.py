@@ -29,7 +29,8 @@ starts = 1                # multi-start: this many starts on Ray workers, the be
 start_spread = 1.5        # the other starts' spread around this one (unconstrained units)
 starts_spp = 256          # spp of the common loss that picks the best start
 [fit.textures]            # optional: colours or mask textures fitted texel by texel (in free too)
-"glaze.pigment" = [64, 32]   # width, height (fit/material/textures.py)
+"glaze.pigment" = [64, 32]   # width, height (fit/material/textures.py), or "photo": the size
+                             # of the first photograph at fit.downscale
 
 [[fit.phases]]            # optional: the default schedule when absent (fit/solvers/schedule.py;
                           # with a mask threshold free, its first 30 Adam steps hold them)

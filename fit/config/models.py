@@ -73,15 +73,28 @@ class FitSettings(StrictModel):
             )
         return self
 
-    @model_validator(mode="after")
-    def _textures_are_free(self):
-        for key, (width, height) in self.textures.items():
-            if key not in self.free:
-                raise FieldError(f"textures.{key}", f"is not in fit.free; add {key!r} to it")
-            if width * height > MAX_TEXELS:
+    @model_validator(mode="before")
+    @classmethod
+    def _texture_sizes(cls, data):
+        textures = data.get("textures") if isinstance(data, dict) else None
+        for key, size in (textures or {}).items() if isinstance(textures, dict) else ():
+            if isinstance(size, str) and size != PHOTO_SIZE:
                 raise FieldError(
                     f"textures.{key}",
-                    f"{width} x {height} texels is more than {MAX_TEXELS}; give fewer",
+                    f'got {size!r}; give [width, height] in texels or "{PHOTO_SIZE}" (the first '
+                    "photograph's size at fit.downscale)",
+                )
+        return data
+
+    @model_validator(mode="after")
+    def _textures_are_free(self):
+        for key, size in self.textures.items():
+            if key not in self.free:
+                raise FieldError(f"textures.{key}", f"is not in fit.free; add {key!r} to it")
+            if size != PHOTO_SIZE and size[0] * size[1] > MAX_TEXELS:
+                raise FieldError(
+                    f"textures.{key}",
+                    f"{size[0]} x {size[1]} texels is more than {MAX_TEXELS}; give fewer",
                 )
         return self
 
@@ -100,10 +113,14 @@ class FitSettings(StrictModel):
             return value
         raise ValueError(f'got {value!r}; should be true, false or "exposure"')
 
-    textures: dict[str, tuple[PositiveInt, PositiveInt]] = Field(default_factory=dict)
-    """Parameters fitted as textures: key = [width, height] in texels; colours (glaze.pigment,
-    clay.reflectance) and masks' textures (<layer>.mask.texture), each also in `free`, starting
-    from the material's value (fit/material/textures.py)."""
+    textures: dict[str, tuple[PositiveInt, PositiveInt] | Literal["photo"]] = Field(
+        default_factory=dict
+    )
+    """Parameters fitted as textures: key = [width, height] in texels, or "photo": the first
+    photograph's size at `downscale` (a texel per pixel where UVs are the image's coordinates,
+    a normal map's height field); colours (glaze.pigment, clay.reflectance) and masks' textures
+    (<layer>.mask.texture), each also in `free`, starting from the material's value
+    (fit/material/textures.py)."""
     loss: Literal["l2", "huber", "cauchy"] = "l2"
     """How a pixel's difference counts: l2, or robust huber / cauchy (biased under noise)."""
     loss_scale: PositiveFloat | None = None
@@ -188,6 +205,18 @@ def load_render_config(path: str | Path) -> RenderConfig:
     return RenderConfig(path, parse_scene(doc.scene, path), material, doc.render.spp)
 
 
+#: `[fit.textures]`: a texture the size of the first photograph at `fit.downscale`.
+PHOTO_SIZE = "photo"
+
+
+def photo_size(capture: Path, downscale: int) -> tuple[int, int]:
+    """(width, height) of a capture's first photograph area-averaged by `downscale`."""
+    from captures import open_capture
+
+    camera = open_capture(capture, downscale).views[0].camera
+    return camera.width, camera.height
+
+
 def load_fit_config(
     path: str | Path, capture: Path | None = None, seed: int | None = None
 ) -> FitConfig:
@@ -222,8 +251,21 @@ def load_fit_config(
                 "check the path"
             )
     material = load_material(doc.material, path)
+    sizes = dict(doc.fit.textures)
+    if PHOTO_SIZE in sizes.values():
+        photo = photo_size(Path(capture), doc.fit.downscale)
+        for key, size in sizes.items():
+            if size != PHOTO_SIZE:
+                continue
+            if photo[0] * photo[1] > MAX_TEXELS:
+                raise ConfigError(
+                    f'{path}: fit.textures.{key} = "photo": the first photograph at downscale '
+                    f"{doc.fit.downscale} is {photo[0]} x {photo[1]}, more than {MAX_TEXELS} "
+                    "texels; raise fit.downscale or give [width, height]"
+                )
+            sizes[key] = photo
     try:
-        material = with_free_textures(material, doc.fit.textures)
+        material = with_free_textures(material, sizes)
     except KeyError as err:
         raise ConfigError(f"{path}: fit.textures.{err.args[0]}") from None
     settings = doc.fit if seed is None else doc.fit.model_copy(update={"seed": seed})

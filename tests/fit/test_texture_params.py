@@ -102,6 +102,10 @@ def test_a_texture_file_is_resampled_and_a_mask_without_one_starts_halfway(tmp_p
         ),
         ('free = ["glaze.pigment"]\n[fit.textures]\n"glaze.pigment" = [0, 4]', "glaze.pigment"),
         ('free = ["glaze.pigment"]\n[fit.textures]\n"glaze.pigment" = [4]', "glaze.pigment"),
+        (
+            'free = ["glaze.pigment"]\n[fit.textures]\n"glaze.pigment" = "photos"',
+            "fit.textures.glaze.pigment: got 'photos'; give [width, height] in texels or \"photo\"",
+        ),
     ],
 )
 def test_bad_textures_are_refused_naming_the_key(tmp_path, fit, said):
