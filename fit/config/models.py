@@ -209,11 +209,12 @@ def load_render_config(path: str | Path) -> RenderConfig:
 PHOTO_SIZE = "photo"
 
 
-def photo_size(capture: Path, downscale: int) -> tuple[int, int]:
-    """(width, height) of a capture's first photograph area-averaged by `downscale`."""
+def photo_size(capture: Path, downscale: int, name: str) -> tuple[int, int]:
+    """(width, height) of a capture's first photograph area-averaged by `downscale` (named
+    `name` in an error)."""
     from captures import open_capture
 
-    camera = open_capture(capture, downscale).views[0].camera
+    camera = open_capture(capture, downscale, name).views[0].camera
     return camera.width, camera.height
 
 
@@ -253,7 +254,7 @@ def load_fit_config(
     material = load_material(doc.material, path)
     sizes = dict(doc.fit.textures)
     if PHOTO_SIZE in sizes.values():
-        photo = photo_size(Path(capture), doc.fit.downscale)
+        photo = photo_size(Path(capture), doc.fit.downscale, f"{path}: fit.downscale")
         for key, size in sizes.items():
             if size != PHOTO_SIZE:
                 continue
