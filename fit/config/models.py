@@ -46,6 +46,10 @@ class _RenderFile(StrictModel):
     """How to render."""
 
 
+#: `[fit.textures]`: a texture the size of the first photograph at `fit.downscale`.
+PHOTO_SIZE = "photo"
+
+
 class FitSettings(StrictModel):
     free: list[str] = Field(min_length=1)
     """The parameter keys the fit moves, e.g. ["glaze.roughness", "lime.mask.threshold"]."""
@@ -77,7 +81,9 @@ class FitSettings(StrictModel):
     @classmethod
     def _texture_sizes(cls, data):
         textures = data.get("textures") if isinstance(data, dict) else None
-        for key, size in (textures or {}).items() if isinstance(textures, dict) else ():
+        if not isinstance(textures, dict):
+            return data  # pydantic says what else is wrong
+        for key, size in textures.items():
             if isinstance(size, str) and size != PHOTO_SIZE:
                 raise FieldError(
                     f"textures.{key}",
@@ -203,10 +209,6 @@ def load_render_config(path: str | Path) -> RenderConfig:
     doc = parse_model(_RenderFile, read_toml(path), path)
     material = load_material(doc.material, path)
     return RenderConfig(path, parse_scene(doc.scene, path), material, doc.render.spp)
-
-
-#: `[fit.textures]`: a texture the size of the first photograph at `fit.downscale`.
-PHOTO_SIZE = "photo"
 
 
 def photo_size(capture: Path, downscale: int, name: str) -> tuple[int, int]:
