@@ -146,6 +146,7 @@ def test_diligent_objects_relight_better_than_the_per_pixel_models(shared_data, 
     capture = (shared_data / folder).as_posix()
     config = tmp_path / "diligent-pot1.toml"
     config.write_text(text.replace('"../../shared/data/diligent-pot1"', f'"{capture}"'))
+    assert f'capture = "{capture}"' in config.read_text()
     table = relight_table(config)
     held = {row[0]: float(row[1]) for row in table.rows}
     ours = held["layerfit (diligent-pot1.toml)"]
