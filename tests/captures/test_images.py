@@ -424,3 +424,28 @@ def test_a_downscaled_photo_leaves_out_pixels_partly_over_what_a_render_would_no
     np.testing.assert_array_equal(small.image[kept], plain_image[kept])
     np.testing.assert_allclose(small.image[kept], 0.6, rtol=1e-6)
     assert (kept & over(dark)).any() and np.all(small.weight[kept & over(dark)] < 1)
+
+
+def test_without_a_mask_only_a_clipped_highlight_leaves_out_its_neighbours():
+    """A view without a mask, its background black and left out (clipped black) beside a lit
+    disc with a clipped highlight: area-averaged, the pixels partly over the highlight get
+    weight 0, those over the disc's outline keep their valid share (a black pixel's true value
+    is about a render's there)."""
+    from captures.capture import Capture, View
+    from captures.scene import Camera, Scene, Sphere
+
+    n = 40
+    yy, xx = np.mgrid[0:n, 0:n]
+    disc = (xx + 0.5 - n / 2) ** 2 + (yy + 0.5 - n / 2) ** 2 <= (0.4 * n) ** 2
+    image = np.where(disc[..., None], 0.6, 0.0).astype(np.float32) * np.ones(3, np.float32)
+    weight = disc.astype(np.float32)
+    image[n // 2, n // 2], weight[n // 2, n // 2] = 5.0, 0.0  # saturated
+    camera = Camera((0.0, -5.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 30.0, n, n)
+    small = Capture(Scene(Sphere(), (camera,)), [View("v", image, weight, camera)]).downscaled(4)
+    _, plain = downscale(image, weight, 4)
+    centre = small.views[0].weight[n // 8, n // 8]
+    assert plain[n // 8, n // 8] > 0.9 and centre == 0
+    outline = (plain > 0) & (plain < 1)
+    outline[n // 8, n // 8] = False  # the highlight's
+    assert outline.sum() > 8
+    np.testing.assert_array_equal(small.views[0].weight[outline], plain[outline])
