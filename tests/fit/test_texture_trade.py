@@ -83,8 +83,11 @@ def test_the_trade_matches_the_texels_rendered_jacobian():
     held, take, _ = problem.holding_textures(u)
     jac1 = finite_rows(*linearised(held, take(u), 64, 1))[1]
     jac2 = finite_rows(*linearised(held, take(u), 64, 2))[1]
-    trade = texel_trade(problem, u, (jac1, jac2), 64, 3)
-    assert trade.shape == (1, 1)
+    # one seed's trade is within about 35 % of its mean (0.0082-0.0172 over seeds 3-6 here):
+    # their mean against the rendered Jacobian's
+    trades = [texel_trade(problem, u, (jac1, jac2), 64, seed) for seed in (3, 4, 5, 6)]
+    assert all(t.shape == (1, 1) for t in trades)
+    trade = np.mean(trades, axis=0)
 
     renderer = problem.renderer(1)
     values = np.asarray(problem.values(u)["glaze.pigment"] + [problem.values(u)["glaze.ior"]])
@@ -100,5 +103,6 @@ def test_the_trade_matches_the_texels_rendered_jacobian():
     a = jt[:, seen].T @ (0.5 * (jac1 + jac2))
     expected = float((a.T @ (a / diagonal[seen, None]))[0, 0])
     assert expected > 0.1 * float(np.sum(jac1 * jac2))  # ior and the pigment do trade
-    # measured over four seeds of the trade's renders: 0.0079-0.0099 against 0.0080
+    # measured: the mean 0.0126 against 0.0101 (the Jacobians of seeds 5 and 6: 0.0088 against
+    # 0.0072); with the glaze's lobes sampled at their weight estimate alone 0.0090 against 0.0080
     assert trade[0, 0] == pytest.approx(expected, rel=0.35)
