@@ -57,7 +57,7 @@ def test_a_narrow_lobe_s_highlight_is_sampled_through_the_bsdf(alpha, ratio, mon
     lobe narrower than the light: its noise made a 16-spp gradient's Newton step swing by more
     than alpha itself. With the narrow lobe's share the image's relative variance is lower by
     `ratio` or more (measured here 4.4x at alpha 0.01, 3.4x at 0.02, 1.9x at 0.05, 1.1x at
-    0.1; 2.9x at 0.02 on the recovery sweep's sphere)."""
+    0.1; 2.7x at 0.02 on the recovery sweep's sphere)."""
     scene = sphere_under_a_small_light(alpha)
     shared = relative_variance(scene)
     monkeypatch.setattr(glaze, "_NARROW_LOBE_PROB", 0.0)
