@@ -14,7 +14,7 @@ from captures.errors import InputError
 from fit import timing
 from fit.solvers import DEFAULT_SCHEDULE, Phase
 from fit.solvers.base import Outcome
-from fit.solvers.gn import settled
+from fit.solvers.gn import _averaged, burn_in, settled
 from fit.solvers.schedule import QUALITIES, at_quality
 
 
@@ -52,6 +52,51 @@ def test_settled_refuses_rejected_steps_and_short_windows():
     rows[3, 0] = np.nan
     assert not settled(list(rows), tolerance=10.0)
     assert not settled(list(rows[-2:]), tolerance=10.0)
+
+
+def _relaxing(rng, steps: int, coordinates: int, start: float) -> np.ndarray:
+    """A `gn` phase's iterates that start `start` from the optimum in the first coordinate and
+    relax 10 % of the way a step, with white noise of sd 1 (the averaged phase's iterates on
+    the torus at alpha 0.01: from +49 % in log, 6.3 % noise, lag-1 autocorrelation -0.09 at
+    rest, about 16 steps to relax)."""
+    u = np.zeros(coordinates)
+    u[0] = start
+    rows = []
+    for _ in range(steps):
+        rows.append(u + rng.normal(size=coordinates))
+        u = 0.9 * u
+    return np.asarray(rows)
+
+
+@pytest.mark.parametrize("coordinates", [5, 20])
+def test_burn_in_leaves_out_a_relaxation_and_rarely_noise(coordinates):
+    """Iterates at rest: some first steps left out in at most 3 % of 300 phases (the level is
+    1 %); relaxing from 8 noise sds away (the torus's alpha 0.01 from 6.3 over 32 steps:
+    +15.5 % averaged from the start, +2.6 % from half-way), the first steps are left out in
+    most phases (measured 95 % with 5 coordinates, 75 % with 20), and then the average is
+    closer than the plain one."""
+    rng = np.random.default_rng(0)
+    alarms = [burn_in(list(_relaxing(rng, 32, coordinates, 0.0)), 0.5) for _ in range(300)]
+    assert np.mean(np.asarray(alarms) > 0) <= 0.03
+    hits, closer = 0, 0
+    for _ in range(100):
+        rows = _relaxing(rng, 32, coordinates, 8.0)
+        d = burn_in(list(rows), 0.5)
+        hits += d >= 4
+        closer += d >= 4 and abs(rows[d:, 0].mean()) < abs(rows[:, 0].mean())
+    assert hits >= 60 and closer >= 0.9 * hits, (hits, closer)
+
+
+def test_burn_in_keeps_short_or_half_averaged_phases_whole():
+    """Fewer than 12 iterates, a rejected step, or a phase that averages half its steps (the
+    relaxing one): nothing is left out."""
+    rng = np.random.default_rng(1)
+    rows = _relaxing(rng, 32, 3, 100.0)
+    assert burn_in(list(rows[:11]), 0.5) == 0
+    assert _averaged(list(rows), 0.5, 0.5) == 16
+    assert _averaged(list(rows), 1.0, 0.5) < 32
+    rows[5, 1] = np.nan
+    assert burn_in(list(rows), 0.5) == 0
 
 
 def _linear(problem, monkeypatch, optimum):
