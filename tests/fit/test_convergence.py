@@ -124,6 +124,28 @@ def test_a_windowed_phase_ends_when_settled_at_the_optimum(problem, monkeypatch)
     assert without.reports[0].outcome == Outcome.STEP_LIMIT and without.reports[0].steps == 30
 
 
+@pytest.mark.parametrize("burn_in_min", [12, 10**6])
+def test_an_averaged_phase_leaves_out_its_relaxation(problem, monkeypatch, burn_in_min):
+    """On an exact linear image from a far start, a phase that averages all its steps (as the
+    default's last one does) leaves the first ones, while it still relaxed, out of its answer:
+    it is the optimum, and the phase says so. Never left out (the check off), the mean of every
+    step stays between the start and the optimum."""
+    import fit.solvers.gn as gn
+
+    monkeypatch.setattr(gn, "BURN_IN_MIN", burn_in_min)
+    truth = {"glaze.pigment": [0.1, 0.22, 0.55], "glaze.roughness": 0.05, "glaze.ior": 1.52}
+    _linear(problem, monkeypatch, truth)
+    start = {"glaze.pigment": [0.4, 0.4, 0.4], "glaze.roughness": 0.2, "glaze.ior": 1.3}
+    result = _gn(problem, problem.unconstrained(start), 24, average=1.0, eta=0.3)
+    alpha, report = result.values["glaze.roughness"], result.reports[0]
+    if burn_in_min > 24:
+        assert alpha > 0.055 and "still relaxing" not in report.message, alpha
+        return
+    assert alpha == pytest.approx(0.05, rel=0.02)
+    assert "averaged its last" in report.message and "of 24 steps" in report.message
+    assert 12 <= len(result.tail_gradients[0]) < 24
+
+
 def test_quality_presets_change_every_phase():
     """draft: half the steps and step limits (rounded up), the full-resolution phases at half
     resolution; best: twice the steps and limits; default: the phases as they are; their
