@@ -114,7 +114,8 @@ class Phase(BaseModel):
 #: relaxation toward alpha 0.01-0.02 from a start at 0.2 stopped early (the torus at alpha 0.01
 #: ended +49 to +69 % against +10 % with all 56 steps). Then steps of 64 spp are averaged, their
 #: curvature refreshed every 4 so that the uncertainty takes its Jacobians: 8 steps, and more (up
-#: to 32) until the average's Monte Carlo sd is within 1.5 % of every value (`precision`): a glossy
+#: to 32) until the average's Monte Carlo sd is within 1.5 % of every value (`precision`), its
+#: first steps left out while it still relaxes (`gn.burn_in`): a glossy
 #: lobe's noise decides (the Cycles torus at alpha 0.04 took 24-32 steps and ended within 3.3 %,
 #: where 8 steps ended +5.3, -5.3 and +5.8 % on seeds 0-2). A gradient's variance falls faster than
 #: 1 / spp (8x for 4x the samples at alpha 0.02), so the average is taken over steps of many
