@@ -140,11 +140,14 @@ def _curvature(j1: np.ndarray, j2: np.ndarray) -> np.ndarray:
     scaling the coordinate's row and column (the curvature stays positive semi-definite).
     With two standard deviations the recovery sweep's averaged phase still relaxed alpha next
     to its bound ~10 % of the way a step (the sphere at 0.01 ended +44 %); with one, +10 %."""
-    mean = 0.5 * (j1 + j2)
-    plain = mean.T @ mean
+    # the mean's J^T J from the two Jacobians' products (their cross product's diagonal is
+    # sum(a b)): matrix products, not N x P sums
+    cross = j1.T @ j2
+    plain = 0.25 * (j1.T @ j1 + cross + cross.T + j2.T @ j2)
     diagonal = np.diag(plain)
     products = j1 * j2
-    cautious = products.sum(axis=0) + CAUTION * np.sqrt((products * products).sum(axis=0))
+    products *= products
+    cautious = np.diag(cross) + CAUTION * np.sqrt(products.sum(axis=0))
     lowest = (1.0 - MAX_NOISE_SHARE) * diagonal
     ok = diagonal > 0
     scale = np.ones_like(diagonal)
@@ -423,7 +426,8 @@ class GaussNewton(AbstractSolver):
                     mean = np.zeros(problem.target(downscale)[0].size, np.float32)
                 grad_mean, r = projected_grad(jnp.asarray(u), jax_seed(step_seed), mean)
                 r = np.asarray(r, np.float64)
-                grad = 0.5 * (jac1 + jac2).T @ (r - mean) + np.asarray(grad_mean, np.float64)
+                d = r - mean
+                grad = 0.5 * (jac1.T @ d + jac2.T @ d) + np.asarray(grad_mean, np.float64)
                 value = 0.5 * float(r @ r)
                 if np.all(np.isfinite(r)):
                     mean = (mean + (r - mean) / min(i + 1, CONTROL_WINDOW)).astype(np.float32)
