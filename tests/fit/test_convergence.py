@@ -71,8 +71,8 @@ def _relaxing(rng, steps: int, coordinates: int, start: float) -> np.ndarray:
 @pytest.mark.parametrize("coordinates", [5, 20])
 def test_burn_in_leaves_out_a_relaxation_and_rarely_noise(coordinates):
     """Iterates at rest: some first steps left out in at most 3 % of 300 phases (the level is
-    1 %); relaxing from 8 noise sds away (the torus's alpha 0.01 from 6.3 over 32 steps:
-    +15.5 % averaged from the start, +2.6 % from half-way), the first steps are left out in
+    1 %); relaxing from 8 noise sds away (the torus's alpha 0.01 started 6.3 away: over its 32
+    steps +15.5 % averaged from the start, +2.6 % from half-way), the first steps are left out in
     most phases (measured 95 % with 5 coordinates, 75 % with 20), and then the average is
     closer than the plain one."""
     rng = np.random.default_rng(0)
@@ -128,8 +128,8 @@ def test_a_windowed_phase_ends_when_settled_at_the_optimum(problem, monkeypatch)
 def test_an_averaged_phase_leaves_out_its_relaxation(problem, monkeypatch, burn_in_min):
     """On an exact linear image from a far start, a phase that averages all its steps (as the
     default's last one does) leaves the first ones, while it still relaxed, out of its answer:
-    it is the optimum, and the phase says so. Never left out (the check off), the mean of every
-    step stays between the start and the optimum."""
+    it is the optimum, and the phase says so (measured 0.0505 for 0.05). Never left out (the
+    check off), the mean of every step stays between the start and the optimum (0.0624)."""
     import fit.solvers.gn as gn
 
     monkeypatch.setattr(gn, "BURN_IN_MIN", burn_in_min)
@@ -139,7 +139,7 @@ def test_an_averaged_phase_leaves_out_its_relaxation(problem, monkeypatch, burn_
     result = _gn(problem, problem.unconstrained(start), 24, average=1.0, eta=0.3)
     alpha, report = result.values["glaze.roughness"], result.reports[0]
     if burn_in_min > 24:
-        assert alpha > 0.055 and "still relaxing" not in report.message, alpha
+        assert 0.055 < alpha < 0.2 and "still relaxing" not in report.message, alpha
         return
     assert alpha == pytest.approx(0.05, rel=0.02)
     assert "averaged its last" in report.message and "of 24 steps" in report.message
