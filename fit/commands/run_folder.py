@@ -119,7 +119,11 @@ def write_run(
         # resolution they missed a third of the texels seen (the cup's: 27 % of 42 %)
         seen = seen_texels(capture.scene, width, height, supersample=2 * cfg.downscale)
         iou = summary["mask_iou"] = mask_iou(shown, true_masks, layers, seen)
-        sizes = {k: t.shape[1::-1] for k, t in textures.items() if k.endswith(".mask.texture")}
+        sizes = {  # the free masks whose truth is painted
+            k: t.shape[1::-1]
+            for k, t in textures.items()
+            if k.endswith(".mask.texture") and k in capture.truth_textures
+        }
         held = summary["mask_iou_resampled"] = resampled_iou(true_material, sizes, seen)
         beside = {}
         for key, texels in shown.items():
