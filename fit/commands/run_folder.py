@@ -110,21 +110,17 @@ def write_run(
     shown = masks(fitted_material)
     true_material = truth_material(cfg.material, capture)
     if true_material is not None:  # fitted and true masks side by side, scored where seen
-        from ..render import seen_texels
-
         true_masks = masks(true_material)
         layers = fitted_material.bsdf["layers"].split(",")
         height, width = next(iter(shown.values())).shape
-        # rays as dense as the photographs' full resolution, whatever `fit.downscale`: at half
-        # resolution they missed a third of the texels seen (the cup's: 27 % of 42 %)
-        seen = seen_texels(capture.scene, width, height, supersample=2 * cfg.downscale)
+        seen = scored_texels(capture.scene, cfg.downscale, width, height)
         iou = summary["mask_iou"] = mask_iou(shown, true_masks, layers, seen)
         sizes = {  # the free masks whose truth is painted
             k: t.shape[1::-1]
             for k, t in textures.items()
             if k.endswith(".mask.texture") and k in capture.truth_textures
         }
-        held = summary["mask_iou_resampled"] = resampled_iou(true_material, sizes, seen)
+        held = summary["mask_iou_resampled"] = resampled_iou(true_material, true_masks, sizes, seen)
         beside = {}
         for key, texels in shown.items():
             beside[key] = texels
@@ -250,11 +246,21 @@ def mask_iou(fitted: dict, true: dict, layers: list[str], seen: np.ndarray) -> d
     return out
 
 
-def resampled_iou(true_material, sizes: dict, seen: np.ndarray) -> dict[str, float]:
+def scored_texels(scene, downscale: int, width: int, height: int) -> np.ndarray:
+    """The texels `mask_iou` scores: those the views see (`seen_texels`), found by rays as dense
+    as the photographs' full resolution whatever `fit.downscale` (at half resolution 2x2 rays a
+    pixel missed a third of them: the cup's 27 % of its UV square seen against 42 %)."""
+    from ..render import seen_texels
+
+    return seen_texels(scene, width, height, supersample=2 * downscale)
+
+
+def resampled_iou(true_material, true_masks: dict, sizes: dict, seen) -> dict[str, float]:
     """What free mask textures of these sizes (key -> (width, height)) can hold: layer name ->
     `mask_iou` of the truth with those painted textures resampled to the sizes (as a fit starts
-    from a file: `start_texels`) against the truth itself, over `seen`. Below one where the
-    truth paints finer than a texel (the cup's bands at 64x32 texels: stain 0.76, lime 0.88)."""
+    from a file: `start_texels`) against the truth itself (`true_masks`, `masks`), over `seen`.
+    Below one where the truth paints finer than a texel (the cup's bands at 64x32 texels:
+    stain 0.76, lime 0.88)."""
     if not sizes:
         return {}
     import tempfile
@@ -268,7 +274,7 @@ def resampled_iou(true_material, sizes: dict, seen: np.ndarray) -> dict[str, flo
             files[key] = Path(folder) / f"{key}.exr"
             write_image(files[key], start_texels(true_material, key, tuple(size)))
         resampled = masks(true_material.with_textures(files))
-    iou = mask_iou(resampled, masks(true_material), layers, seen)
+    iou = mask_iou(resampled, true_masks, layers, seen)
     return {k.removesuffix(".mask.texture"): iou[k.removesuffix(".mask.texture")] for k in sizes}
 
 

@@ -100,18 +100,19 @@ def test_the_masks_fit_resolution_holds_the_cups_masks():
     the rim is under a 64x64 texel; at 64x32, texels twice as tall as wide on the cup, the lime
     scored 0.88 and the stain 0.76 before any fit."""
     from captures import open_capture
-    from fit.commands.run_folder import resampled_iou
+    from fit.commands.run_folder import resampled_iou, scored_texels
     from fit.config import load_fit_config
 
     cfg = load_fit_config(ROOT / "configs" / "cup-masks-fit.toml")
     capture = open_capture(cfg.capture, cfg.downscale)
     true = truth_material(cfg.material, capture)
-    seen = seen_texels(capture.scene, 256, 256, supersample=2 * cfg.downscale)  # as the fit's
+    baked = masks(true)
+    seen = scored_texels(capture.scene, cfg.downscale, 256, 256)  # as the fit's summary
     sizes = {k: v for k, v in cfg.textures.items() if k.endswith(".mask.texture")}
     assert set(sizes) == {"glaze.mask.texture", "lime.mask.texture", "stain.mask.texture"}
-    held = resampled_iou(true, sizes, seen)
+    held = resampled_iou(true, baked, sizes, seen)
     assert held["glaze"] >= 0.98 and held["lime"] >= 0.95 and held["stain"] >= 0.88, held
-    coarse = resampled_iou(true, dict.fromkeys(sizes, (64, 32)), seen)
+    coarse = resampled_iou(true, baked, dict.fromkeys(sizes, (64, 32)), seen)
     assert coarse["lime"] < 0.9 and coarse["stain"] < 0.8, coarse  # what the score can tell
     assert all(held[k] > coarse[k] for k in held), (held, coarse)
 
