@@ -144,8 +144,20 @@ def bench(
         str, typer.Option(help="--only grid: comma-separated image widths (height: 3/4 of it).")
     ] = "64,128,256",
     seeds: Annotated[
-        int, typer.Option(min=1, help="--only versus, quality: runs of each method (seeds).")
-    ] = 3,
+        int | None,
+        typer.Option(
+            min=1,
+            help="--only versus, quality: runs of each method (seeds; default 3); --only "
+            "recovery: fit seeds of each case (default 1, the sweep's seed 0).",
+        ),
+    ] = None,
+    cases: Annotated[
+        str | None,
+        typer.Option(
+            help="--only recovery: comma-separated case labels (alpha 0.01, ior 1.05, dark "
+            "pigment; default all)."
+        ),
+    ] = None,
     results: Annotated[
         Path | None,
         typer.Option(

@@ -199,6 +199,11 @@ def capture(case: Case, width: int = 96, height: int = 72, spp: int = TARGET_SPP
     return Capture(scene, views, truth=case.truth())
 
 
+def fit_label(case: Case, seed: int) -> str:
+    """A fit's name: its case's, and its seed where it is not 0 (the sweep's own)."""
+    return case.name + (f", seed {seed}" if seed else "")
+
+
 @dataclass
 class Outcome:
     """A case's fitted values, standard deviations and wall time; its target's samples per
@@ -212,6 +217,11 @@ class Outcome:
     sigmas: dict = field(init=False)
     target_spp: int | None = None
     allowance: float | None = None
+    seed: int = 0  # the fit's
+
+    @property
+    def label(self) -> str:
+        return fit_label(self.case, self.seed)
 
     def __post_init__(self):
         truth = self.case.truth()
@@ -244,13 +254,16 @@ class Outcome:
         if "allowance" in saved and allowance is None:
             allowance = math.inf
         spp = saved.get("target_spp")
-        return cls(case, saved["values"], std, saved["seconds"], spp, allowance)
+        return cls(
+            case, saved["values"], std, saved["seconds"], spp, allowance, saved.get("seed", 0)
+        )
 
     def as_dict(self) -> dict:
         """The outcome as strict JSON values (an undetermined, infinite sd as null)."""
         std = {k: strict(v) for k, v in self.std.items()}
         return {
             "case": self.case.name,
+            "seed": self.seed,
             "truth": self.case.truth(),
             "values": self.values,
             "std": std,
@@ -310,23 +323,31 @@ def recover(
     height: int = 72,
     seed: int = 0,
     target: Capture | None = None,
+    clean: tuple[Capture, int, float] | None = None,
 ) -> Outcome:
-    """Fit `case` back from `START` with `schedule` (the default one unless given), against
-    `target` (default: the case's clean target, at `target_spp`)."""
+    """Fit `case` back from `START` with `schedule` (the default one unless given) and `seed`,
+    against `target`, else its clean target (`clean`, as `clean_target` gives it: rendered once
+    for several seeds; default: rendered here)."""
     from .material import resolve
     from .solvers import DEFAULT_SCHEDULE, Problem, run_schedule
 
     spp = allowance = None
     if target is None:
-        spp, allowance = target_spp(case, width, height)
-        target = case_target(case, width, height, spp)
+        target, spp, allowance = clean or clean_target(case, width, height)
     material = glaze(START)
     problem = Problem(target, material, resolve(material, list(KEYS)))
     began = time.perf_counter()
     result = run_schedule(problem, START, schedule or DEFAULT_SCHEDULE, seed)
     seconds = time.perf_counter() - began
     values = {k: result.values[k] for k in KEYS}
-    return Outcome(case, values, dict(result.std), seconds, spp, allowance)
+    return Outcome(case, values, dict(result.std), seconds, spp, allowance, seed)
+
+
+def clean_target(case: Case, width: int, height: int) -> tuple[Capture, int, float]:
+    """The case's clean target, its samples per pixel and what they allow alpha
+    (`target_spp`)."""
+    spp, allowance = target_spp(case, width, height)
+    return case_target(case, width, height, spp), spp, allowance
 
 
 #: Samples per pixel of each of `data_limit`'s two Jacobian renders, and its pairs of renders
@@ -406,7 +427,7 @@ def calibration_rows(outcomes: list[Outcome]) -> list[list[str]]:
 
         rows.append(
             [
-                o.case.name,
+                o.label,
                 f"{100 * alpha:+.1f} % ({sd('glaze.roughness')})" + mark("glaze.roughness"),
                 f"{o.errors['glaze.ior']:+.4f} ({sd('glaze.ior')})" + mark("glaze.ior"),
                 f"{o.errors['glaze.pigment'][pig]:+.4f} ({sd('glaze.pigment', pig)})"

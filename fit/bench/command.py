@@ -55,7 +55,8 @@ def run(
     size: str = "160x120",
     shapes: str = "sphere,torus",
     widths: str = "64,128,256",
-    seeds: int = 3,
+    seeds: int | None = None,
+    cases: str | None = None,
     results: Path | None = None,
     out: Path | None = None,
     force: bool = False,
@@ -84,6 +85,8 @@ def run(
         raise InputError(f"--only {only!r}: unknown table; choose {choices}")
     if fit_config is None:
         fit_config = FIT_CONFIGS.get(only or "", Path("configs/peer-sphere.toml"))
+    if seeds is None:  # the recovery sweep's table is seed 0's; the others compare medians
+        seeds = 1 if only == "recovery" else 3
     for option, value, low, high in (
         ("--spp", spp, 1, MAX_SPP),
         ("--repeats", repeats, 1, None),
@@ -104,6 +107,7 @@ def run(
         )
     width, height = parse_size(size) if only in ON_CASES else (0, 0)
     shape_list = parse_shapes(shapes) if only in ON_CASES else []
+    chosen = pick_cases(shape_list, cases) if only == "recovery" else []
     grid_widths = parse_widths(widths) if only == "grid" else ()
     plot = None
     if only in PLOTTED:
@@ -130,7 +134,6 @@ def run(
 
     start(variant)
     from ..commands.common import stopping
-    from ..recovery import sweep
     from .bsdfs import bsdf_speed_table, cup_speed_table
     from .grid import grid_cells, grid_table
     from .long_runs import long_run, long_run_table, plot_long_run
@@ -157,8 +160,7 @@ def run(
                 tables.append(long_run_table(long))
                 plot_long_run(long, plot)
             if only == "recovery":
-                cases = sweep(tuple(shape_list))
-                tables.append(recovery_table(cases, width, height, results, progress))
+                tables.append(recovery_table(chosen, width, height, results, progress, seeds=seeds))
             if only == "profile":
                 tables.append(profile_table(width))
             if only == "grid":
@@ -191,6 +193,25 @@ def parse_size(text: str) -> tuple[int, int]:
             f"--size {text!r}: not a size; give WIDTHxHEIGHT, each at least 8 (160x120)"
         )
     return int(parts[0]), int(parts[1])
+
+
+def pick_cases(shapes: list[str], labels: str | None) -> list:
+    """The recovery sweep's cases of `shapes` (`fit.recovery.sweep`) whose labels `labels`
+    names (comma-separated: `alpha 0.01,ior 1.05`), in the sweep's order; None: all of them."""
+    from ..recovery import sweep
+
+    cases = sweep(tuple(shapes))
+    if labels is None:
+        return cases
+    known = list(dict.fromkeys(c.label for c in cases))
+    wanted = [t.strip() for t in labels.split(",") if t.strip()]
+    unknown = [t for t in wanted if t not in known]
+    if unknown or not wanted:
+        raise InputError(
+            f"--cases {labels!r}: no case {unknown[0] if unknown else ''!r}; choose from "
+            + ", ".join(known)
+        )
+    return [c for c in cases if c.label in wanted]
 
 
 def parse_shapes(text: str) -> list[str]:

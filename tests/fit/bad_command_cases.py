@@ -444,6 +444,7 @@ COMMAND_CASES: list[Case] = [
     ("bench-size", lambda d: ["bench", "--only", "recovery", "--size", "3x3"], ("--size",)),
     ("bench-size-text", lambda d: ["bench", "--only", "grid", "--size", "big"], ("--size",)),
     ("bench-shapes", lambda d: ["bench", "--only", "recovery", "--shapes", "cube"], ("--shapes",)),
+    ("bench-cases", lambda d: ["bench", "--only", "recovery", "--cases", "alpha 7"], ("--cases",)),
     ("bench-widths", lambda d: ["bench", "--only", "grid", "--widths", "64,x"], ("--widths",)),
     (
         "bench-fit-free",

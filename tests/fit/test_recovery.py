@@ -52,11 +52,11 @@ def test_calibration_table_resumes_and_refuses_a_foreign_file(tmp_path, monkeypa
     case = recovery.Case("sphere", label="base")
     fitted = []
 
-    def fake(case, schedule, width, height):
+    def fake(case, schedule, width, height, seed=0, clean=None):
         fitted.append(case.name)
         values = case.truth() | {"glaze.roughness": case.roughness * 1.5}
         std = {"glaze.pigment": [0.01] * 3, "glaze.roughness": 0.01, "glaze.ior": 0.01}
-        return recovery.Outcome(case, values, std, 1.0, 1024, math.inf)
+        return recovery.Outcome(case, values, std, 1.0, 1024, math.inf, seed)
 
     monkeypatch.setattr(recovery, "recover", fake)
     results = tmp_path / "r.json"
@@ -75,6 +75,72 @@ def test_calibration_table_resumes_and_refuses_a_foreign_file(tmp_path, monkeypa
         bench.recovery_table([case], 16, 12, results)
     bench.recovery_table([case], 16, 12, results, replace=True)
     assert json.loads(results.read_text())["setting"]["size"] == [16, 12]
+
+
+def test_more_seeds_resume_a_sweep_and_share_each_cases_target(tmp_path, monkeypatch):
+    """`seeds` fits each case on seeds 0 to seeds - 1 against one clean target, rendered once a
+    case; a sweep's seed-0 fits are kept and the other seeds added, each a row of its own."""
+    cases = [recovery.Case("sphere", roughness=a, label=f"alpha {a:g}") for a in (0.01, 0.02)]
+    fitted, rendered = [], []
+
+    def target(case, width, height):
+        rendered.append(case.name)
+        return object(), 4096, 0.01
+
+    def fake(case, schedule, width, height, seed=0, clean=None):
+        fitted.append((case.name, seed, clean))
+        values = case.truth() | {"glaze.roughness": case.roughness * (1 + 0.01 * seed)}
+        std = {"glaze.pigment": [0.01] * 3, "glaze.roughness": 1e-5, "glaze.ior": 0.01}
+        spp, allowance = (None, None) if clean is None else clean[1:]
+        return recovery.Outcome(case, values, std, 1.0, spp, allowance, seed)
+
+    monkeypatch.setattr(recovery, "clean_target", target)
+    monkeypatch.setattr(recovery, "recover", fake)
+    results = tmp_path / "r.json"
+    bench.recovery_table(cases, 16, 12, results)
+    assert [(n, s) for n, s, _ in fitted] == [("sphere: alpha 0.01", 0), ("sphere: alpha 0.02", 0)]
+    assert rendered == [] and all(c is None for *_, c in fitted)  # one seed: recover renders
+    fitted.clear()
+    table = bench.recovery_table(cases, 16, 12, results, seeds=3)
+    assert [(n, s) for n, s, _ in fitted] == [
+        ("sphere: alpha 0.01", 1),
+        ("sphere: alpha 0.01", 2),
+        ("sphere: alpha 0.02", 1),
+        ("sphere: alpha 0.02", 2),
+    ]
+    assert rendered == ["sphere: alpha 0.01", "sphere: alpha 0.02"]
+    assert [row[0] for row in table.rows] == [
+        "sphere: alpha 0.01",
+        "sphere: alpha 0.01, seed 1",
+        "sphere: alpha 0.01, seed 2",
+        "sphere: alpha 0.02",
+        "sphere: alpha 0.02, seed 1",
+        "sphere: alpha 0.02, seed 2",
+    ]
+    # seeds 1 and 2 end alpha 1 and 2 % off, 10 sd or more: only the seed-0 fits pass
+    assert "fit seeds 0-2" in table.title and table.notes[0].startswith("2 of 6 fits")
+    assert [row[-1] for row in table.rows] == ["yes", "no", "no"] * 2
+    saved = json.loads(results.read_text())["cases"]
+    assert saved["sphere: alpha 0.02, seed 2"]["seed"] == 2
+    assert recovery.Outcome.from_dict(cases[1], saved["sphere: alpha 0.02, seed 2"]).seed == 2
+
+
+def test_cases_pick_the_sweeps_cases_by_label():
+    """`--cases` keeps the named cases of every shape, in the sweep's order; an unknown label
+    is named with the labels to choose from."""
+    from captures.errors import InputError
+    from fit.bench.command import pick_cases
+
+    chosen = pick_cases(["sphere", "torus"], "ior 1.05, alpha 0.01")
+    assert [c.name for c in chosen] == [
+        "sphere: alpha 0.01",
+        "sphere: ior 1.05",
+        "torus: alpha 0.01",
+        "torus: ior 1.05",
+    ]
+    assert len(pick_cases(["sphere"], None)) == len(recovery.sweep(("sphere",)))
+    with pytest.raises(InputError, match=r"no case 'alpha 0\.011'; choose from alpha 0\.005"):
+        pick_cases(["sphere"], "alpha 0.011")
 
 
 @pytest.mark.parametrize("shape", ["sphere", pytest.param("torus", marks=pytest.mark.slow)])
