@@ -207,10 +207,8 @@ def pick_cases(shapes: list[str], labels: str | None) -> list:
     wanted = [t.strip() for t in labels.split(",") if t.strip()]
     unknown = [t for t in wanted if t not in known]
     if unknown or not wanted:
-        raise InputError(
-            f"--cases {labels!r}: no case {unknown[0] if unknown else ''!r}; choose from "
-            + ", ".join(known)
-        )
+        what = f"no case {unknown[0]!r}" if unknown else "names no case"
+        raise InputError(f"--cases {labels!r}: {what}; choose from " + ", ".join(known))
     return [c for c in cases if c.label in wanted]
 
 

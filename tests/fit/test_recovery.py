@@ -141,6 +141,8 @@ def test_cases_pick_the_sweeps_cases_by_label():
     assert len(pick_cases(["sphere"], None)) == len(recovery.sweep(("sphere",)))
     with pytest.raises(InputError, match=r"no case 'alpha 0\.011'; choose from alpha 0\.005"):
         pick_cases(["sphere"], "alpha 0.011")
+    with pytest.raises(InputError, match=r"names no case; choose from alpha 0\.005"):
+        pick_cases(["sphere"], " , ")
 
 
 @pytest.mark.parametrize("shape", ["sphere", pytest.param("torus", marks=pytest.mark.slow)])
