@@ -82,6 +82,20 @@ class GNOptions(Options):
     0: `steps` steps."""
     max_steps: PositiveInt | None = None
     """With `precision`: the most steps (absent: `steps`)."""
+    spp_limit: Annotated[PositiveInt, Field(le=MAX_SPP)] | None = None
+    """With it, at each curvature refresh where some parameter's step noise over the last
+    `refresh` steps (`step_noise`: what relaxing toward the optimum does not explain) exceeds
+    `max_step_noise` of its `precision_scale`, the phase renders with `SPP_RAISE` times the
+    samples from then on (the image and the reverse pass alike), its `spp` raised up to this
+    many. A glossy lobe's steps wander so far at 16 spp that they leave the region where the
+    linear model holds: on the recovery sweep's sphere at alpha 0.01 (fit seed 2) alpha's steps
+    had an sd of 41 % of its value over the default's first 10 relaxing steps, its iterates
+    jumped to 0.0022 next to its bound and the fit ended 60-68 % low (with it: +4.7 %); at
+    alpha 0.02-0.05 the sd was 5-6 % (BENCHMARKS, "Low alpha on fit seeds 0-2"). Absent: the
+    phase keeps `spp`."""
+    max_step_noise: PositiveFloat = 0.1
+    """With `spp_limit`: the step noise (`step_noise`), as a share of a parameter's
+    `precision_scale`, above which the phase raises its samples."""
     gradient: Literal["control", "reverse"] = "control"
     """Each step's gradient. `reverse`: the residual `r` of a fresh render times its reverse
     pass (another seed), `J_B^T r`. `control`: the residual's mean over the phase's last steps,
@@ -114,6 +128,44 @@ def sample_split(problem, u, spp: int, seed: int, downscale: int) -> tuple[int, 
     if ratio >= AUTO_RATIO:
         return AUTO_SPLIT * spp, max(1, spp // AUTO_SPLIT), ratio
     return spp, spp, ratio
+
+
+#: How many times the samples per pixel a `gn` phase with `spp_limit` takes at a raise: a
+#: 16-spp gradient's noise is its image's and its reverse pass's, and 4x the samples of both at
+#: alpha 0.02 cut the variance 8x (`DEFAULT_SCHEDULE`).
+SPP_RAISE = 4
+
+
+def step_noise(problem, iterates) -> dict[str, float]:
+    """Each free key's standard deviation of its steps' noise between `iterates` (rows of
+    solver vectors, a rejected step's skipped), in physical values at the last of them as a
+    share of its `precision_scale` (the largest of its components'). A step's noise is what its
+    coordinate's relaxation does not explain: a `gn` step moves a coordinate by a fraction of
+    its distance to the optimum plus noise, so its steps are regressed on the iterates before
+    them (`a + b u`) and the residuals' sd (two degrees of freedom less) is the noise; a steady
+    relaxation has none. Fewer than four rows: empty."""
+    x = np.asarray(iterates, np.float64)
+    x = x[np.all(np.isfinite(x), axis=1)] if x.ndim == 2 else x[:0]
+    if len(x) < 4:
+        return {}
+    n = problem.n_material
+    u = x[-1, :n]
+    slope = np.abs(np.diag(transform_jacobian(problem.free, u)))
+    value = np.asarray(to_physical(problem.free, u.astype(np.float32)), np.float64)
+    steps, before = np.diff(x[:, :n], axis=0), x[:-1, :n]
+    sd = np.empty(n)
+    for j in range(n):
+        design = np.stack([np.ones(len(steps)), before[:, j] - before[:, j].mean()], axis=1)
+        fitted = design @ np.linalg.lstsq(design, steps[:, j], rcond=None)[0]
+        sd[j] = np.sqrt(np.sum((steps[:, j] - fitted) ** 2) / max(len(steps) - 2, 1))
+    sd *= slope
+    out, i = {}, 0
+    for f in problem.free:
+        part = slice(i, i + f.size)
+        i += f.size
+        scale = np.maximum(precision_scale(f.spec, value[part]), 1e-12)
+        out[f.key] = float(np.max(sd[part] / scale))
+    return out
 
 
 #: The most a coordinate's curvature is lowered below its plain `J^T J` for the Jacobian's noise.
@@ -277,6 +329,26 @@ def settled(iterates: list, tolerance: float = 1.0) -> bool:
     return bool(np.all(net <= tolerance * z_p * np.sqrt(2.0) * spread))
 
 
+def _gradients(problem, primal_spp: int, grad_spp: int, downscale: int, control: bool):
+    """A `gn` step's gradients, jitted: `(loss, J_B^T r)` and `(J_B^T m, r)` at `(u, seed)`
+    (and `m`) from one render of `primal_spp` and its reverse pass of `grad_spp`."""
+    render = problem.render_fn("reverse", primal_spp, downscale, grad_spp=grad_spp)
+    # the gains' derivative from an independent render: `J_B^T r` has the step's image in both
+    # factors (biased low); the control gradient never multiplies the image by itself (`J` and
+    # `m` come from other renders), so it saves that render
+    residual = residuals(problem, render, downscale, independent_gains=not control)
+
+    def loss(u, seed):
+        r = residual(u, seed)
+        return 0.5 * jnp.dot(r, r)
+
+    def projected(u, seed, mean):
+        r = residual(u, seed)
+        return jnp.dot(jax.lax.stop_gradient(mean), r), r
+
+    return jax.jit(jax.value_and_grad(loss)), jax.jit(jax.grad(projected, has_aux=True))
+
+
 class GaussNewton(AbstractSolver):
     """Each step: the loss's gradient from a render with a fresh seed (its adjoint decorrelated,
     as Adam's; by default with the step image's noise taken through the curvature's Jacobian,
@@ -321,6 +393,9 @@ class GaussNewton(AbstractSolver):
         refuse_forward_mode(problem, "gn", "its curvature is a forward-mode Jacobian")
         u = np.asarray(u0 if resume is None else resume["u"], np.float32)
         note = ""
+        # the phase's samples per pixel, raised with `spp_limit`, and what its message says of it
+        level = spp if resume is None else int(resume.get("level", spp))
+        raised = "" if resume is None else str(resume.get("raised", ""))
         if resume is not None and "samples" in resume:
             primal_spp, grad_spp = (int(n) for n in resume["samples"])
         elif options.primal_spp == "auto":
@@ -331,25 +406,10 @@ class GaussNewton(AbstractSolver):
             )
         else:
             primal_spp, grad_spp = options.primal_spp or spp, spp
-        render = problem.render_fn("reverse", primal_spp, downscale, grad_spp=grad_spp)
-        # the gains' derivative from an independent render: `J_B^T r` has the step's image in
-        # both factors (biased low); the control gradient never multiplies the image by itself
-        # (`J` and `m` come from other renders), so it saves that render
         control = options.gradient == "control"
-        residual = residuals(problem, render, downscale, independent_gains=not control)
-
-        def loss(u, seed):
-            r = residual(u, seed)
-            return 0.5 * jnp.dot(r, r)
-
-        value_and_grad = jax.jit(jax.value_and_grad(loss))
-
-        def projected(u, seed, mean):
-            r = residual(u, seed)
-            return jnp.dot(jax.lax.stop_gradient(mean), r), r
-
-        # (J_B^T m, r) from one render and its reverse pass
-        projected_grad = jax.jit(jax.grad(projected, has_aux=True))
+        value_and_grad, projected_grad = _gradients(
+            problem, primal_spp, grad_spp, downscale, control
+        )
         mean = None if resume is None else resume.get("mean_residual")
         # every step's iterate after it and (iterate before, gradient): the result averages the
         # last `average` of the steps taken, `window` tests the last iterates
@@ -399,6 +459,21 @@ class GaussNewton(AbstractSolver):
         for i in range(first, limit):
             if i > 0 and finished(i):
                 break
+            if options.spp_limit and level < options.spp_limit and i and i % options.refresh == 0:
+                noise = step_noise(problem, iterates[-options.refresh - 1 :])
+                worst = max(noise, key=noise.get, default=None)
+                if worst is not None and noise[worst] > options.max_step_noise:
+                    factor = min(SPP_RAISE * level, options.spp_limit) // level
+                    level *= factor
+                    primal_spp = min(primal_spp * factor, MAX_SPP)
+                    grad_spp = min(grad_spp * factor, MAX_SPP)
+                    value_and_grad, projected_grad = _gradients(
+                        problem, primal_spp, grad_spp, downscale, control
+                    )
+                    raised = (
+                        f"{level} spp from step {i + 1} ({worst}'s step noise "
+                        f"{100 * noise[worst]:.0f} % of its scale)"
+                    )
             step_seed = seed * 100003 + i + 1
             if linear is None or i % options.refresh == 0:
                 # Two Jacobians of half the samples each (independent seeds), each averaged
@@ -463,6 +538,8 @@ class GaussNewton(AbstractSolver):
                         "n_tail_gradients": len(pairs),
                         "rejected": rejected,
                         "samples": [primal_spp, grad_spp],
+                        "level": level,
+                        "raised": raised,
                         **({} if mean is None else {"mean_residual": mean}),
                     }
                 )
@@ -486,6 +563,8 @@ class GaussNewton(AbstractSolver):
             if noisy:
                 said += f"; {', '.join(noisy)} still noisier at max_steps"
             note = f"{said}; {note}" if note else said
+        if raised:
+            note = f"{note}; {raised}" if note else raised
         if note:
             report.message = f"{report.message}; {note}" if report.message else note
         if constants is not None and taken:

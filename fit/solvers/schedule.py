@@ -108,22 +108,23 @@ class Phase(BaseModel):
 
 #: The default schedule: Adam with fresh seeds at half resolution and 8 spp is cheap and robust from
 #: far away (its scale-free steps also move a parameter started next to a bound, where the sigmoid
-#: is flat); then the stochastic Gauss-Newton `gn` at full resolution, in two phases. 56 steps of
-#: 16 spp relax, and the mean of their last half is handed on (a single iterate wanders 0.012-0.028
-#: around alpha 0.02 at 16 spp). They run every step: ended once settled (`GNOptions.window`), the
+#: is flat); then the stochastic Gauss-Newton `gn` at full resolution, in two phases. 56 steps of 16
+#: spp relax, and the mean of their last half is handed on (a single iterate wanders 0.012-0.028
+#: around alpha 0.02 at 16 spp), with 4x the samples from a curvature refresh on where a value's
+#: steps are noisier than 10 % of it (`GNOptions.spp_limit`: a glossy lobe's steps at 16 spp jumped
+#: alpha 0.01 next to its bound). They run every step: ended once settled (`GNOptions.window`), the
 #: relaxation toward alpha 0.01-0.02 from a start at 0.2 stopped early (the torus at alpha 0.01
 #: ended +49 to +69 % against +10 % with all 56 steps). Then steps of 64 spp are averaged, their
-#: curvature refreshed every 4 so that the uncertainty takes its Jacobians: 8 steps, and more (up
-#: to 32) until the average's Monte Carlo sd is within 1.5 % of every value (`precision`), its
-#: first steps left out while it still relaxes (`gn.burn_in`): a glossy
-#: lobe's noise decides (the Cycles torus at alpha 0.04 took 24-32 steps and ended within 3.3 %,
-#: where 8 steps ended +5.3, -5.3 and +5.8 % on seeds 0-2). A gradient's variance falls faster than
-#: 1 / spp (8x for 4x the samples at alpha 0.02), so the average is taken over steps of many
-#: samples; relaxing takes steps. Measurements: BENCHMARKS, "Fitting: the measurements behind the
-#: default" and "Low alpha".
+#: curvature refreshed every 4 so that the uncertainty takes its Jacobians: 8 steps, and more (up to
+#: 32) until the average's Monte Carlo sd is within 1.5 % of every value (`precision`), its first
+#: steps left out while it still relaxes (`gn.burn_in`): a glossy lobe's noise decides (the Cycles
+#: torus at alpha 0.04 took 24-32 steps and ended within 3.3 %, where 8 steps ended +5.3, -5.3 and
+#: +5.8 % on seeds 0-2). A gradient's variance falls faster than 1 / spp (8x for 4x the samples at
+#: alpha 0.02), so the average is taken over steps of many samples; relaxing takes steps.
+#: Measurements: BENCHMARKS, "Fitting: the measurements behind the default" and "Low alpha".
 DEFAULT_SCHEDULE = (
     Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
-    Phase(solver="gn", steps=56, spp=16, jacobian_spp=16, refresh=10, average=0.5),
+    Phase(solver="gn", steps=56, spp=16, jacobian_spp=16, refresh=10, average=0.5, spp_limit=64),
     Phase(
         solver="gn",
         steps=8,

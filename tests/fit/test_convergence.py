@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from sphere_problems import _gn
+from sphere_problems import _gn, keep_offered
 
 from captures.errors import InputError
 from fit import timing
@@ -369,3 +369,88 @@ def test_draft_on_views_too_small_to_halve_names_the_quality(tmp_path):
     assert "fit.phases[0].downscale = 2 (at fit.quality = 'draft')" in message
     assert "leaves a 4x3 view" in message and "--quality default" in message
     assert not (tmp_path / "run").exists()
+
+
+def _noisy_linear(problem, monkeypatch, optimum, noise: float, calls: list):
+    """`_linear` with each step's image carrying noise of sd `noise / sqrt(spp)` (its seed's),
+    the samples of every step render recorded in `calls` as (image spp, reverse spp)."""
+    import jax
+
+    _linear(problem, monkeypatch, optimum)
+    exact = problem.render_fn("reverse", 1, 1)
+
+    def render_fn(mode, spp, downscale, grad_spp=None, **_):
+        calls.append((spp, grad_spp))
+
+        def render(x, seed):
+            key = jax.random.PRNGKey(seed)
+            image = exact(x, seed)
+            return image + noise / np.sqrt(spp) * jax.random.normal(key, image.shape)
+
+        return render
+
+    monkeypatch.setattr(problem, "render_fn", render_fn)
+
+
+@pytest.mark.parametrize("noise", [0.0, 40.0])
+def test_a_phase_with_noisy_steps_raises_its_samples(problem, monkeypatch, noise):
+    """With `spp_limit`, a `gn` phase whose steps wander more than `max_step_noise` of a value
+    renders 4x the samples (image and reverse pass) from its next curvature refresh on, up to
+    the limit, and says so; with quiet steps it keeps its samples. On an exact linear image
+    with noise of sd 40 / sqrt(spp) per pixel, alpha's steps at 4 spp wander far more than 5 %
+    of alpha (65 % at 16 spp, measured); without noise they only relax toward it from a start
+    away from it, and relaxing is not noise (the raw steps' sd: 8.7 % of alpha)."""
+    truth = {"glaze.pigment": [0.1, 0.22, 0.55], "glaze.roughness": 0.05, "glaze.ior": 1.52}
+    calls = []
+    _noisy_linear(problem, monkeypatch, truth, noise, calls)
+    start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.3, "glaze.ior": 1.4}
+    u0 = problem.unconstrained(start)
+    # stricter than the default, so that a relaxation taken for noise would raise it (8.7 %)
+    strict = {"spp": 4, "spp_limit": 64, "max_step_noise": 0.05}
+    report = _gn(problem, u0, 16, average=0.5, **strict).reports[0]
+    if not noise:
+        assert calls == [(4, 4)] and "spp from step" not in report.message
+        return
+    # raised at the refreshes after steps 4 and 8, then at the limit
+    assert calls == [(4, 4), (16, 16), (64, 64)], calls
+    assert "64 spp from step 9" in report.message, report.message
+    assert "glaze.roughness's step noise" in report.message
+    # resumed after the raise (its state offered after step 10): it keeps the samples and says so
+    saved = {}
+    _gn(problem, u0, 16, offer=keep_offered(10, saved), **strict)
+    del calls[:]
+    resumed = _gn(problem, u0, 16, resume=saved, **strict).reports[0]
+    assert calls == [(64, 64)] and "64 spp from step 9" in resumed.message
+
+
+def test_step_noise_is_each_values_wander_as_a_share_of_its_scale(problem):
+    """`step_noise`: the sd of a key's steps' noise in physical values, a share of the value
+    itself for alpha (bounded away from zero) and of the range for a colour, where the iterates
+    relax toward an optimum as `gn`'s do (half the way a step) plus noise; a steady relaxation
+    alone has none; a rejected step (NaN) is skipped; fewer than four rows say nothing."""
+    from fit.material import to_physical
+    from fit.solvers.gn import step_noise
+
+    truth = {"glaze.pigment": [0.1, 0.22, 0.55], "glaze.roughness": 0.05, "glaze.ior": 1.52}
+    u0 = np.asarray(problem.unconstrained(truth), np.float64)
+    assert [f.key for f in problem.free] == ["glaze.pigment", "glaze.roughness", "glaze.ior"]
+    alpha, red = 3, 0  # solver coordinates: pigment (3), alpha, ior
+    rng = np.random.default_rng(1)
+    sigma = np.zeros_like(u0)
+    sigma[alpha], sigma[red] = 1e-3, 4e-3
+    rows = [u0 + np.where(sigma > 0, 0.2, 0.0)]  # a start away from the optimum
+    for _ in range(400):
+        rows.append(rows[-1] - 0.5 * (rows[-1] - u0) + sigma * rng.normal(size=u0.shape))
+    rows.insert(7, np.full_like(u0, np.nan))
+
+    def physical(u):
+        return np.asarray(to_physical(problem.free, np.asarray(u, np.float32)), np.float64)
+
+    moved = physical(u0 + sigma) - physical(u0)  # a one-sigma step's change of each value
+    noise = step_noise(problem, rows)
+    assert noise["glaze.roughness"] == pytest.approx(moved[alpha] / 0.05, rel=0.1)
+    assert noise["glaze.pigment"] == pytest.approx(moved[red], rel=0.1)  # of the range 1
+    assert noise["glaze.ior"] == 0.0
+    relaxing = [u0 + 0.2 * 0.5**k for k in range(10)]
+    assert max(step_noise(problem, relaxing).values()) < 1e-4
+    assert step_noise(problem, rows[:3]) == {}
