@@ -152,13 +152,15 @@ def step_noise(problem, iterates) -> dict[str, float]:
     u = x[-1, :n]
     slope = np.abs(np.diag(transform_jacobian(problem.free, u)))
     value = np.asarray(to_physical(problem.free, u.astype(np.float32)), np.float64)
+    # each column's least squares `steps = a + b before`, in closed form (a coordinate that
+    # never moved: b = 0)
     steps, before = np.diff(x[:, :n], axis=0), x[:-1, :n]
-    sd = np.empty(n)
-    for j in range(n):
-        design = np.stack([np.ones(len(steps)), before[:, j] - before[:, j].mean()], axis=1)
-        fitted = design @ np.linalg.lstsq(design, steps[:, j], rcond=None)[0]
-        sd[j] = np.sqrt(np.sum((steps[:, j] - fitted) ** 2) / max(len(steps) - 2, 1))
-    sd *= slope
+    steps = steps - steps.mean(axis=0)
+    before = before - before.mean(axis=0)
+    spread = np.sum(before**2, axis=0)
+    b = np.divide(np.sum(before * steps, axis=0), spread, out=np.zeros(n), where=spread > 0)
+    residual = steps - b * before
+    sd = np.sqrt(np.sum(residual**2, axis=0) / max(len(steps) - 2, 1)) * slope
     out, i = {}, 0
     for f in problem.free:
         part = slice(i, i + f.size)
