@@ -25,6 +25,7 @@ from .uncertainty import (
     linear_model,
     refuse_forward_mode,
     transform_jacobian,
+    transform_slope,
 )
 
 
@@ -150,7 +151,7 @@ def step_noise(problem, iterates) -> dict[str, float]:
         return {}
     n = problem.n_material
     u = x[-1, :n]
-    slope = np.abs(np.diag(transform_jacobian(problem.free, u)))
+    slope = np.abs(transform_slope(problem.free, u))
     value = np.asarray(to_physical(problem.free, u.astype(np.float32)), np.float64)
     # each column's least squares `steps = a + b before`, in closed form (a coordinate that
     # never moved: b = 0)
@@ -472,9 +473,11 @@ class GaussNewton(AbstractSolver):
                     value_and_grad, projected_grad = _gradients(
                         problem, primal_spp, grad_spp, downscale, control
                     )
+                    spec = next(f.spec for f in problem.free if f.key == worst)
                     raised = (
                         f"{level} spp from step {i + 1} ({worst}'s step noise "
-                        f"{100 * noise[worst]:.0f} % of its scale)"
+                        f"{100 * noise[worst]:.0f} % of its "
+                        f"{'value' if spec.lower > 0 else 'range'})"
                     )
             step_seed = seed * 100003 + i + 1
             if linear is None or i % options.refresh == 0:

@@ -182,6 +182,14 @@ def transform_jacobian(free, u) -> np.ndarray:
     return np.asarray(jax.jacfwd(lambda v: to_physical(free, v, jnp))(u), np.float64)
 
 
+def transform_slope(free, u) -> np.ndarray:
+    """The diagonal of `transform_jacobian` (each transform acts on its own component), from
+    one forward-mode pass: no N x N matrix where textures are free."""
+    u = jnp.asarray(u, jnp.float32)
+    _, slope = jax.jvp(lambda v: to_physical(free, v, jnp), (u,), (jnp.ones_like(u),))
+    return np.asarray(slope, np.float64)
+
+
 def linearised(
     problem: Problem, u, spp: int, seed: int, downscale: int = 1
 ) -> tuple[np.ndarray, np.ndarray]:

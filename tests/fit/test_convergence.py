@@ -454,3 +454,29 @@ def test_step_noise_is_each_values_wander_as_a_share_of_its_scale(problem):
     relaxing = [u0 + 0.2 * 0.5**k for k in range(10)]
     assert max(step_noise(problem, relaxing).values()) < 1e-4
     assert step_noise(problem, rows[:3]) == {}
+
+
+def test_step_noise_takes_a_free_textures_noisiest_texel():
+    """With a free texture (the glazed sphere's pigment as 4x4 texels beside its ior) a key's
+    step noise is its noisiest texel's, as a share of the colour's range: one texel stepping
+    back and forth, the rest still, gives that texel's noise and none to the ior."""
+    from test_texture_trade import pigment_texture_problem
+
+    from fit.material import to_physical
+    from fit.solvers.gn import step_noise
+
+    problem, u0 = pigment_texture_problem(4, 4)
+    u0 = np.asarray(u0, np.float64)
+    keys = [f.key for f in problem.free]
+    assert keys == ["glaze.pigment", "glaze.ior"] and problem.free[0].size == 4 * 4 * 3
+    rng = np.random.default_rng(2)
+    rows = [u0.copy()]
+    for _ in range(200):  # texel 5 at rest around u0[5], half the way back each step, plus noise
+        row = rows[-1].copy()
+        row[5] += -0.5 * (row[5] - u0[5]) + 0.01 * rng.normal()
+        rows.append(row)
+    moved = to_physical(problem.free, np.asarray(u0 + 0.01 * (np.arange(len(u0)) == 5), np.float32))
+    moved = np.asarray(moved, np.float64) - np.asarray(to_physical(problem.free, u0), np.float64)
+    noise = step_noise(problem, rows)
+    assert noise[keys[0]] == pytest.approx(moved[5], rel=0.15)  # of the range 1
+    assert noise[keys[1]] == 0.0
