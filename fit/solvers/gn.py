@@ -88,12 +88,12 @@ class GNOptions(Options):
     `refresh` steps (`step_noise`: what relaxing toward the optimum does not explain) exceeds
     `max_step_noise` of its `precision_scale`, the phase renders with `SPP_RAISE` times the
     samples from then on (the image and the reverse pass alike), its `spp` raised up to this
-    many. A glossy lobe's steps wander so far at 16 spp that they leave the region where the
-    linear model holds: on the recovery sweep's sphere at alpha 0.01 (fit seed 2) alpha's steps
-    had an sd of 41 % of its value over the default's first 10 relaxing steps, its iterates
-    jumped to 0.0022 next to its bound and the fit ended 60-68 % low (with it: +4.7 %); at
-    alpha 0.02-0.05 the sd was 5-6 % (BENCHMARKS, "Low alpha on fit seeds 0-2"). Absent: the
-    phase keeps `spp`."""
+    many (more than `spp`). A glossy lobe's steps wander so far at 16 spp that they leave the
+    region where the linear model holds: on the recovery sweep's sphere at alpha 0.01 (fit seed
+    2) alpha's steps had an sd of 41 % of its value over the default's first 10 relaxing steps,
+    its iterates jumped to 0.0022 next to its bound and the fit ended 60-68 % low (with it:
+    +4.7 %); at alpha 0.02-0.05 the sd was 5-6 % (BENCHMARKS, "Low alpha on fit seeds 0-2").
+    Absent: the phase keeps `spp`."""
     max_step_noise: PositiveFloat = 0.1
     """With `spp_limit`: the step noise (`step_noise`), as a share of a parameter's
     `precision_scale`, above which the phase raises its samples."""
@@ -466,10 +466,12 @@ class GaussNewton(AbstractSolver):
                 noise = step_noise(problem, iterates[-options.refresh - 1 :])
                 worst = max(noise, key=noise.get, default=None)
                 if worst is not None and noise[worst] > options.max_step_noise:
-                    factor = min(SPP_RAISE * level, options.spp_limit) // level
-                    level *= factor
-                    primal_spp = min(primal_spp * factor, MAX_SPP)
-                    grad_spp = min(grad_spp * factor, MAX_SPP)
+                    raised_to = min(SPP_RAISE * level, options.spp_limit)
+                    primal_spp, grad_spp = (
+                        min(max(1, round(n * raised_to / level)), MAX_SPP)
+                        for n in (primal_spp, grad_spp)
+                    )
+                    level = raised_to
                     value_and_grad, projected_grad = _gradients(
                         problem, primal_spp, grad_spp, downscale, control
                     )

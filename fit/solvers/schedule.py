@@ -84,6 +84,11 @@ class Phase(BaseModel):
             )
         if limit is not None and limit < self.steps:
             raise FieldError("max_steps", f"= {limit} is below steps = {self.steps}; raise it")
+        most = getattr(self._options, "spp_limit", None)
+        if most is not None and most <= self.spp:
+            raise FieldError(
+                "spp_limit", f"= {most} does not raise spp = {self.spp}; make it larger"
+            )
         return self
 
     @property

@@ -153,6 +153,11 @@ FIT_CASES: list[Case] = [
         ("fit.toml", "fit.phases[0].primal_spp:", "1048576"),
     ),
     (
+        "fit-phase-spp-limit-below-spp",
+        fit_cfg('solver = "adam"\n', 'solver = "gn"\nspp_limit = 1\n'),
+        ("fit.toml", "fit.phases[0].spp_limit", "does not raise spp = 1"),
+    ),
+    (
         "fit-phase-hold-string",
         fit_cfg("spp = 1\n", 'spp = 1\nhold = "glaze.ior"\n'),
         ("fit.toml", "fit.phases[0].hold", "should be an array"),

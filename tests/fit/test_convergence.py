@@ -421,6 +421,10 @@ def test_a_phase_with_noisy_steps_raises_its_samples(problem, monkeypatch, noise
     del calls[:]
     resumed = _gn(problem, u0, 16, resume=saved, **strict).reports[0]
     assert calls == [(64, 64)] and "64 spp from step 9" in resumed.message
+    # a limit that is not 4x a count: the last raise stops at it
+    del calls[:]
+    _gn(problem, u0, 16, **{**strict, "spp_limit": 24})
+    assert calls == [(4, 4), (16, 16), (24, 24)], calls
 
 
 def test_step_noise_is_each_values_wander_as_a_share_of_its_scale(problem):
