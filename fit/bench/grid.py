@@ -40,10 +40,16 @@ def grid_schedule(solver: str, spp: int) -> tuple:
         return (Phase(solver="bfgs", steps=30, spp=spp),)
     if solver == "default":
         scale = spp / DEFAULT_SCHEDULE[-1].spp
-        return tuple(
-            p.model_copy(update={"spp": max(1, round(p.spp * scale))}) for p in DEFAULT_SCHEDULE
-        )
+        return tuple(_scaled(p, max(1, round(p.spp * scale))) for p in DEFAULT_SCHEDULE)
     raise ValueError(f"solver {solver!r}")
+
+
+def _scaled(phase, spp: int):
+    """`phase` at `spp`, a `gn` phase's `spp_limit` the same multiple of it."""
+    fields = phase.model_dump()  # its options too (extra fields), validated again
+    if fields.get("spp_limit"):
+        fields["spp_limit"] = spp * (fields["spp_limit"] // phase.spp)
+    return type(phase)(**{**fields, "spp": spp})
 
 
 def grid_cells(

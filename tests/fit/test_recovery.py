@@ -333,3 +333,25 @@ def test_versus_table_resumes_and_compares_medians(tmp_path, monkeypatch):
     (tmp_path / "v.json").write_text(json.dumps(saved))
     bench.versus_table(3, tmp_path / "v.json")
     assert ran[6:] == [("default", 1)]
+
+
+@pytest.mark.parametrize("spp", [4, 16, 64, 256])
+def test_the_grids_default_scales_every_count_with_its_last_phase(spp):
+    """The grid's default at other samples: every phase's spp, and the relaxing phase's
+    `spp_limit`, the default's multiples of the last phase's count (a limit left at 64 would
+    raise the 4-spp cell's relaxing phase 16x, and refuse the 256-spp cell's)."""
+    from fit.bench.grid import grid_schedule
+    from fit.solvers import DEFAULT_SCHEDULE
+
+    scaled = grid_schedule("default", spp)
+    assert scaled[-1].spp == spp
+    for phase, default in zip(scaled, DEFAULT_SCHEDULE, strict=True):
+        assert phase.spp == max(1, round(default.spp * spp / DEFAULT_SCHEDULE[-1].spp))
+        assert (phase.steps, phase.solver, phase.downscale) == (
+            default.steps,
+            default.solver,
+            default.downscale,
+        )
+        limit = getattr(default.options, "spp_limit", None)
+        if limit:
+            assert phase.options.spp_limit == phase.spp * (limit // default.spp)
