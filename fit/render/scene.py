@@ -74,9 +74,9 @@ SAMPLER = "multijitter"
 
 def sample_count(spp: int) -> int:
     """The samples per pixel `SAMPLER` renders when asked for `spp`: its strata grid has
-    `isqrt(spp)` columns, so a count they do not divide rounds up to the next multiple (32
-    renders 35, 128 renders 132; counts they divide, squares and 8 among them, are exact).
-    Asking for it exactly keeps Mitsuba from warning at every render."""
+    `isqrt(spp)` columns, so a count they do not divide rounds up to the next multiple (32 renders
+    35, 128 renders 132; squares, 2^k up to 16 and k(k + 1) are exact). Asking for it exactly
+    keeps Mitsuba from warning at every render."""
     columns = max(1, math.isqrt(spp))
     return columns * -(-spp // columns)
 
