@@ -98,10 +98,8 @@ def legend_once(ax) -> None:
 # The fitting code's constants in a results file's setting -----------------------------------------
 
 #: The modules whose constants decide a default fit's answer besides its schedule (`gn`'s
-#: curvature caution, the uncertainty's thresholds, the renders' sampler, the BSDFs' sampling
-#: and bounds).
+#: curvature caution, the uncertainty's thresholds, the BSDFs' sampling and bounds).
 FIT_MODULES = (
-    "fit.render.scene",
     "fit.solvers.adam",
     "fit.solvers.gn",
     "fit.solvers.problem",

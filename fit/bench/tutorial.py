@@ -24,15 +24,14 @@ TUTORIAL_WARM_UP = ((1, 16, 0.05), (1, 64, 0.01))
 def tutorial_loop(
     problem, start: dict, stages=TUTORIAL, seed: int = 0, record=None, every: int = 10
 ) -> tuple[float, dict, int]:
-    """The loop of a Mitsuba tutorial, natively (no JAX, no transforms, no freezing): one scene per
-    view with the tutorials' `independent` sampler, `mi.ad.Adam` on the raw parameter values,
-    `dr.backward` of the weighted squared error through `mi.render` with a decorrelated
-    `seed_grad`, clipped to bounds. Returns its wall time until the final values are read
-    (Dr.Jit evaluates lazily: a loop's iterations return before their work is done), the values,
-    and the renders (primal and adjoint each count one per view). With `seed` k iteration i
-    renders with seed k x TUTORIAL_SEED_STRIDE + i (k = 0: the pinned seeds); `record(iteration,
-    seconds, values)` is called every `every` iterations (reading the values waits for that
-    iteration's kernels)."""
+    """The loop of a Mitsuba tutorial, natively (no JAX, no transforms, no freezing): one scene
+    per view, `mi.ad.Adam` on the raw parameter values, `dr.backward` of the weighted squared
+    error through `mi.render` with a decorrelated `seed_grad`, clipped to bounds. Returns its
+    wall time until the final values are read (Dr.Jit evaluates lazily: a loop's iterations
+    return before their work is done), the values, and the renders (primal and adjoint each
+    count one per view). With `seed` k iteration i renders with seed k x TUTORIAL_SEED_STRIDE + i
+    (k = 0: the pinned seeds); `record(iteration, seconds, values)` is called every `every`
+    iterations (reading the values waits for that iteration's kernels)."""
     import drjit as dr
 
     from ..render import MATERIAL_PREFIX
@@ -41,9 +40,7 @@ def tutorial_loop(
     _, sqrt_w = problem.target()
     scenes, params, targets, weights, offset = [], [], [], [], 0
     for i, view in enumerate(capture.views):
-        scene = scene_dict(capture.scene_of(i), problem.material, 0, 16)
-        scene["sensor"]["sampler"] = {"type": "independent"}  # a tutorial scene's sampler
-        scenes.append(load_scene(scene))
+        scenes.append(load_scene(scene_dict(capture.scene_of(i), problem.material, 0, 16)))
         params.append(mi.traverse(scenes[-1]))
         targets.append(mi.TensorXf(view.image))
         size = view.image.size

@@ -7,8 +7,6 @@ from collections.abc import Callable
 import mitsuba as mi
 import numpy as np
 
-from .scene import sample_count
-
 #: Samples per pixel of one pass; a render of more spp averages passes with distinct seeds.
 PASS_SPP = 64
 
@@ -23,14 +21,14 @@ def render(
 
     Passes of at most `PASS_SPP` samples use seeds `seed, seed + 1, ...` (modulo 2^32, the
     sampler's seed width); the result is their spp-weighted mean, equal in distribution to one
-    render at `spp` (a last pass the sampler's strata round up weighs what it rendered).
+    render at `spp`.
     """
     total, done, seed_i = None, 0, seed
     while done < spp:
-        n = sample_count(min(PASS_SPP, spp - done))
+        n = min(PASS_SPP, spp - done)
         image = np.asarray(mi.render(scene, spp=n, seed=seed_i), dtype=np.float64)[..., :3]
         total = image * n if total is None else total + image * n
         done, seed_i = done + n, (seed_i + 1) % 2**32
         if progress is not None:
-            progress(min(done, spp))
-    return (total / done).astype(np.float32)
+            progress(done)
+    return (total / spp).astype(np.float32)

