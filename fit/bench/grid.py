@@ -48,7 +48,7 @@ def _scaled(phase, spp: int):
     """`phase` at `spp`, a `gn` phase's `spp_limit` the same multiple of it."""
     fields = phase.model_dump()  # its options too (extra fields), validated again
     if fields.get("spp_limit"):
-        fields["spp_limit"] = spp * (fields["spp_limit"] // phase.spp)
+        fields["spp_limit"] = max(spp + 1, round(fields["spp_limit"] * spp / phase.spp))
     return type(phase)(**{**fields, "spp": spp})
 
 

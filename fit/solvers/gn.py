@@ -210,11 +210,17 @@ def _curvature(j1: np.ndarray, j2: np.ndarray) -> np.ndarray:
     return plain * np.outer(scale, scale)
 
 
+def relative(spec) -> bool:
+    """Whether a parameter's precision is a share of its value (a quantity bounded away from
+    zero: alpha, ior, scale factors) rather than of its range (`precision_scale`)."""
+    return spec.lower > 0
+
+
 def precision_scale(spec, x: np.ndarray) -> np.ndarray:
     """What `GNOptions.precision` is a share of: the value itself for a quantity bounded away
     from zero (alpha, ior, scale factors: their errors are relative), else the range (colours,
     sigma, whose zero is a value like any other)."""
-    if spec.lower > 0:
+    if relative(spec):
         return np.abs(x)
     return np.full_like(x, spec.upper - spec.lower)
 
@@ -479,7 +485,7 @@ class GaussNewton(AbstractSolver):
                     raised = (
                         f"{level} spp from step {i + 1} ({worst}'s step noise "
                         f"{100 * noise[worst]:.0f} % of its "
-                        f"{'value' if spec.lower > 0 else 'range'})"
+                        f"{'value' if relative(spec) else 'range'})"
                     )
             step_seed = seed * 100003 + i + 1
             if linear is None or i % options.refresh == 0:

@@ -354,4 +354,4 @@ def test_the_grids_default_scales_every_count_with_its_last_phase(spp):
         )
         limit = getattr(default.options, "spp_limit", None)
         if limit:
-            assert phase.options.spp_limit == phase.spp * (limit // default.spp)
+            assert phase.options.spp_limit == round(limit * phase.spp / default.spp)
