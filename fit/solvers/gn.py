@@ -71,6 +71,16 @@ class GNOptions(Options):
     """The phase ends (outcome `converged`, its `steps` a limit) once its iterates have settled:
     over its last `window` steps no coordinate moved more than its noise would (`settled`).
     0: every step runs."""
+    relaxed: bool = False
+    """The phase ends (outcome `converged`, its `steps` a limit) at a curvature refresh once it
+    has relaxed: its last `refresh` steps are quiet (every value's step noise within
+    `max_step_noise`, as `spp_limit` asks) and, over its steps since its start or its last raise
+    of samples (`spp_limit`), at least `RELAXED_MIN` of them, no value has a trend over their
+    last half (`trending`): its result, the mean of its last `average` of them, no longer moves.
+    A glossy lobe's alpha can sit still for 20 steps before it relaxes (its curvature swollen by
+    the first Jacobians' noise, its steps too short until later refreshes average it away):
+    measured on the recovery sweep's torus at alpha 0.005-0.02 (fit seed 1), where Adam handed
+    on 0.022-0.023 and alpha fell only from step 20-30 on."""
     tolerance: PositiveFloat = 1.0
     """With `window`: the net move that counts as settled, in units of what noise alone gives
     (`settled`; smaller: stricter)."""
@@ -175,6 +185,9 @@ def step_noise(problem, iterates) -> dict[str, float]:
 MAX_NOISE_SHARE = 15 / 16
 #: How many standard deviations of the two Jacobians' cross product `_curvature` keeps above it.
 CAUTION = 1.0
+#: With `relaxed`: the fewest steps a phase tests for drift (since its start or its last raise of
+#: samples).
+RELAXED_MIN = 30
 #: With `gradient = "control"`: the steps whose residuals make its running mean `m` (the mean
 #: of all so far for the first steps, then an exponential mean of this weight).
 CONTROL_WINDOW = 8
@@ -284,9 +297,20 @@ def burn_in(iterates: list, eta: float) -> int:
     its mean over all of them ended +15.5 %, over the last 16 +2.6 % (BENCHMARKS, "Recovery
     over the range")."""
     x = np.asarray(iterates, np.float64)
+    moving = drifting(x, eta)
+    if moving is None or not moving.size:
+        return 0
+    return max(_mser(x[:, j], len(x) // 2) for j in moving)
+
+
+def drifting(iterates, eta: float) -> np.ndarray | None:
+    """The coordinates (columns) of a phase's iterates (rows) whose mean over the second half
+    differs from their mean over the first by more than noise would (`burn_in`'s test); None
+    where there are too few (`BURN_IN_MIN`) or a rejected step's."""
+    x = np.asarray(iterates, np.float64)
     taken = len(x)
     if taken < BURN_IN_MIN or x.ndim != 2 or not np.all(np.isfinite(x)):
-        return 0
+        return None
     half = taken // 2
     first, second = x[:half], x[half:]
     rho = min(max(1.0 - eta, 0.0), 0.9)
@@ -297,10 +321,37 @@ def burn_in(iterates: list, eta: float) -> int:
     sidak = 1.0 - 0.5 * (1.0 - (1.0 - BURN_IN_ALARM) ** (1.0 / x.shape[1]))
     level = float(student_t.ppf(sidak, taken - half - 1))
     moved = np.abs(second.mean(axis=0) - first.mean(axis=0))
-    drifting = np.nonzero(moved > level * np.maximum(se, 1e-30))[0]
-    if not drifting.size:
-        return 0
-    return max(_mser(x[:, j], half) for j in drifting)
+    return np.nonzero(moved > level * np.maximum(se, 1e-30))[0]
+
+
+#: `trending`'s false alarms: the chance that iterates only wandering around the optimum are
+#: taken for a phase still moving. Generous: a false alarm costs `refresh` more steps, a miss
+#: hands on a mean short of the optimum.
+TREND_ALARM = 0.2
+
+
+def trending(iterates, eta: float, alarm: float = TREND_ALARM) -> np.ndarray | None:
+    """The coordinates (columns) of a phase's iterates (rows) with a trend: the slope of their
+    least-squares line over the steps beyond what noise would give (Student's t of the
+    residuals' spread, each slope's variance inflated for an AR(1) of coefficient 1 - eta, at
+    most 0.9; the two-sided `alarm` level for all coordinates together, Sidak); None where
+    there are fewer than four rows or a rejected step's. A relaxation toward the optimum is a
+    trend whatever its rate: a slow one's steady steps are its residuals' signal, not noise
+    (a comparison of the halves, `drifting`, takes a steady drift's spread for noise)."""
+    x = np.asarray(iterates, np.float64)
+    n = len(x)
+    if n < 4 or x.ndim != 2 or not np.all(np.isfinite(x)):
+        return None
+    t = np.arange(n, dtype=np.float64) - 0.5 * (n - 1)
+    centred = x - x.mean(axis=0)
+    slope = t @ centred / (t @ t)
+    residual = centred - np.outer(t, slope)
+    sigma = np.sqrt(np.sum(residual**2, axis=0) / (n - 2))
+    rho = min(max(1.0 - eta, 0.0), 0.9)
+    se = sigma * np.sqrt((1.0 + rho) / (1.0 - rho) / (t @ t))
+    sidak = 1.0 - 0.5 * (1.0 - (1.0 - alarm) ** (1.0 / x.shape[1]))
+    level = float(student_t.ppf(sidak, n - 2))
+    return np.nonzero(np.abs(slope) > level * np.maximum(se, 1e-30))[0]
 
 
 def _mser(series: np.ndarray, most: int) -> int:
@@ -405,6 +456,8 @@ class GaussNewton(AbstractSolver):
         # the phase's samples per pixel, raised with `spp_limit`, and what its message says of it
         level = spp if resume is None else int(resume.get("level", spp))
         raised = "" if resume is None else str(resume.get("raised", ""))
+        # the step from which the phase renders at `level` (`relaxed` tests the steps since)
+        since = 0 if resume is None else int(resume.get("since", 0))
         if resume is not None and "samples" in resume:
             primal_spp, grad_spp = (int(n) for n in resume["samples"])
         elif options.primal_spp == "auto":
@@ -439,7 +492,7 @@ class GaussNewton(AbstractSolver):
                 linear = tuple(np.asarray(leaf, np.float32) for leaf in resume["leaves"])
                 if "constants" in resume:
                     constants = np.asarray(resume["constants"], np.float32)
-        settled_at, noisy = None, []
+        settled_at, relaxed_at, noisy = None, None, []
         limit = max(steps, options.max_steps or steps) if options.precision else steps
 
         def still_noisy() -> list[str]:
@@ -451,14 +504,29 @@ class GaussNewton(AbstractSolver):
             return imprecise(problem, rows[:, : len(u)], rows[:, len(u) :], *jac, options.precision)
 
         def finished(done: int) -> bool:
-            """Whether the phase ends with `done` steps taken: settled (`window`), or precise
-            at a check (`precision`: after `steps`, then every `refresh`). Asked of the state
+            """Whether the phase ends with `done` steps taken: settled (`window`), relaxed at a
+            refresh (`relaxed`), or precise at a check (`precision`: after `steps`, then every
+            `refresh`). Asked of the state
             before a step, so that a resumed phase asks it of the state it saved."""
-            nonlocal settled_at, noisy
+            nonlocal settled_at, relaxed_at, noisy
             window = options.window
             if window and len(iterates) > window and settled(iterates[-window - 1 :], tol):
                 settled_at, noisy = done, []
                 return True
+            if (
+                options.relaxed
+                and done % options.refresh == 0
+                and done - since >= RELAXED_MIN
+                and len(iterates) == done
+            ):
+                # quiet steps (noisy ones hide a trend) and what the phase hands on (its last
+                # half since the raise) without one
+                noise = step_noise(problem, iterates[-options.refresh - 1 :])
+                quiet = bool(noise) and max(noise.values()) <= options.max_step_noise
+                moving = trending(iterates[since + (done - since) // 2 : done], options.eta)
+                if quiet and moving is not None and not moving.size:
+                    relaxed_at = done
+                    return True
             if options.precision and done >= steps and (done - steps) % options.refresh == 0:
                 noisy = still_noisy()
                 return not noisy
@@ -466,8 +534,7 @@ class GaussNewton(AbstractSolver):
 
         tol = options.tolerance
         for i in range(first, limit):
-            if i > 0 and finished(i):
-                break
+            # a raise first: `relaxed` then tests only the steps at the new count (none yet)
             if options.spp_limit and level < options.spp_limit and i and i % options.refresh == 0:
                 noise = step_noise(problem, iterates[-options.refresh - 1 :])
                 worst = max(noise, key=noise.get, default=None)
@@ -477,7 +544,7 @@ class GaussNewton(AbstractSolver):
                         min(max(1, round(n * raised_to / level)), MAX_SPP)
                         for n in (primal_spp, grad_spp)
                     )
-                    level = raised_to
+                    level, since = raised_to, i
                     value_and_grad, projected_grad = _gradients(
                         problem, primal_spp, grad_spp, downscale, control
                     )
@@ -487,6 +554,8 @@ class GaussNewton(AbstractSolver):
                         f"{100 * noise[worst]:.0f} % of its "
                         f"{'value' if relative(spec) else 'range'})"
                     )
+            if i > 0 and finished(i):
+                break
             step_seed = seed * 100003 + i + 1
             if linear is None or i % options.refresh == 0:
                 # Two Jacobians of half the samples each (independent seeds), each averaged
@@ -553,6 +622,7 @@ class GaussNewton(AbstractSolver):
                         "samples": [primal_spp, grad_spp],
                         "level": level,
                         "raised": raised,
+                        "since": since,
                         **({} if mean is None else {"mean_residual": mean}),
                     }
                 )
@@ -564,9 +634,11 @@ class GaussNewton(AbstractSolver):
         tail = iterates[taken - n :] if n else []
         out = averaged_result(self.name, problem, u, tail, None, history, taken, rejected)
         report = out.reports[-1]
-        if settled_at is not None and report.outcome != Outcome.DIVERGED:
+        ended = settled_at if settled_at is not None else relaxed_at
+        if ended is not None and report.outcome != Outcome.DIVERGED:
             report.outcome = Outcome.CONVERGED
-            said = f"settled after {settled_at} of {steps} steps"
+            how = "settled" if settled_at is not None else "relaxed"
+            said = f"{how} after {ended} of {steps} steps"
             report.message = f"{said}; {report.message}" if report.message else said
         if n < round(options.average * taken):
             said = f"averaged its last {n} of {taken} steps (the first still relaxing)"

@@ -129,7 +129,16 @@ class Phase(BaseModel):
 #: Measurements: BENCHMARKS, "Fitting: the measurements behind the default" and "Low alpha".
 DEFAULT_SCHEDULE = (
     Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
-    Phase(solver="gn", steps=56, spp=16, jacobian_spp=16, refresh=10, average=0.5, spp_limit=64),
+    Phase(
+        solver="gn",
+        steps=56,
+        spp=16,
+        jacobian_spp=16,
+        refresh=10,
+        average=0.5,
+        spp_limit=64,
+        relaxed=True,
+    ),
     Phase(
         solver="gn",
         steps=8,

@@ -427,6 +427,62 @@ def test_a_phase_with_noisy_steps_raises_its_samples(problem, monkeypatch, noise
     assert calls == [(4, 4), (16, 16), (24, 24)], calls
 
 
+@pytest.mark.parametrize("eta", [0.5, 0.02])
+def test_a_relaxing_phase_ends_once_its_steps_stop_drifting(problem, monkeypatch, eta):
+    """With `relaxed`, a `gn` phase whose noisy steps have relaxed to the optimum ends
+    `converged` at a curvature refresh, at least `RELAXED_MIN` steps in, and says after how
+    many; its result averages the last half of them. Steps of eta 0.02 relax about 50x slower:
+    the phase goes on while any value still drifts, and ends (if it ends) only where its
+    average is at the optimum. Without it the phase takes all its steps."""
+    from fit.solvers.gn import RELAXED_MIN
+
+    truth = {"glaze.pigment": [0.1, 0.22, 0.55], "glaze.roughness": 0.05, "glaze.ior": 1.52}
+    _noisy_linear(problem, monkeypatch, truth, 0.1, [])
+    start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.3, "glaze.ior": 1.4}
+    u0 = problem.unconstrained(start)
+    options = {"refresh": 10, "average": 0.5, "eta": eta}
+    result = _gn(problem, u0, 200, relaxed=True, **options)
+    report = result.reports[0]
+    if eta == 0.5:
+        assert report.outcome == Outcome.CONVERGED, report.message
+        assert RELAXED_MIN <= report.steps < 200 and report.steps % 10 == 0
+        assert f"relaxed after {report.steps} of 200 steps" in report.message
+        assert len(result.tail_gradients[0]) == report.steps // 2
+    alpha = result.values["glaze.roughness"]
+    if report.outcome == Outcome.CONVERGED:
+        assert alpha == pytest.approx(0.05, rel=0.15), (report.message, alpha)
+    else:  # still drifting at its limit: between the start and the optimum, as before
+        assert report.steps == 200 and 0.05 < alpha < 0.3, alpha
+    plain = _gn(problem, u0, 60, **options).reports[0]
+    assert plain.outcome == Outcome.STEP_LIMIT and plain.steps == 60
+
+
+def test_a_relaxing_phase_tests_only_quiet_steps_since_its_last_raise(problem, monkeypatch):
+    """A phase that raises its samples (`spp_limit`) does not end as relaxed while its steps
+    are noisy: it tests quiet steps at its last count, at least `RELAXED_MIN` of them. With
+    noise of sd 0.5 / sqrt(spp) per pixel alpha's steps wander 34 % of it at 4 spp (raised at
+    the refreshes after steps 10 and 20) and are quiet at 64."""
+    from fit.solvers.gn import RELAXED_MIN
+
+    truth = {"glaze.pigment": [0.1, 0.22, 0.55], "glaze.roughness": 0.05, "glaze.ior": 1.52}
+    calls = []
+    _noisy_linear(problem, monkeypatch, truth, 0.5, calls)
+    start = {"glaze.pigment": [0.3, 0.3, 0.3], "glaze.roughness": 0.3, "glaze.ior": 1.4}
+    u0 = problem.unconstrained(start)
+    raising = {"spp": 4, "spp_limit": 64, "refresh": 10, "average": 0.5}
+    result = _gn(problem, u0, 200, relaxed=True, **raising)
+    report = result.reports[0]
+    assert calls == [(4, 4), (16, 16), (64, 64)], calls
+    assert "64 spp from step 21" in report.message, report.message
+    assert report.outcome == Outcome.CONVERGED, report.message
+    assert report.steps >= 20 + RELAXED_MIN and report.steps % 10 == 0, report.steps
+    assert result.values["glaze.roughness"] == pytest.approx(0.05, rel=0.15)
+    # steps never quiet (the same noise, no raise): it takes them all
+    del calls[:]
+    noisy = _gn(problem, u0, 80, relaxed=True, spp=4, refresh=10, average=0.5).reports[0]
+    assert noisy.outcome == Outcome.STEP_LIMIT and noisy.steps == 80, noisy.message
+
+
 def test_step_noise_is_each_values_wander_as_a_share_of_its_scale(problem):
     """`step_noise`: the sd of a key's steps' noise in physical values, a share of the value
     itself for alpha (bounded away from zero) and of the range for a colour, where the iterates
