@@ -9,8 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from pydantic import Field, PositiveFloat, PositiveInt
-from scipy.special import ndtri
-from scipy.stats import t as student_t
+from scipy.special import ndtri, stdtrit
 
 from ..limits import MAX_SPP
 from ..material import to_physical
@@ -319,7 +318,7 @@ def drifting(iterates, eta: float) -> np.ndarray | None:
     spread = second.std(axis=0, ddof=1)
     se = spread * np.sqrt(inflation * (1.0 / half + 1.0 / (taken - half)))
     sidak = 1.0 - 0.5 * (1.0 - (1.0 - BURN_IN_ALARM) ** (1.0 / x.shape[1]))
-    level = float(student_t.ppf(sidak, taken - half - 1))
+    level = float(stdtrit(taken - half - 1, sidak))
     moved = np.abs(second.mean(axis=0) - first.mean(axis=0))
     return np.nonzero(moved > level * np.maximum(se, 1e-30))[0]
 
@@ -350,7 +349,7 @@ def trending(iterates, eta: float, alarm: float = TREND_ALARM) -> np.ndarray | N
     rho = min(max(1.0 - eta, 0.0), 0.9)
     se = sigma * np.sqrt((1.0 + rho) / (1.0 - rho) / (t @ t))
     sidak = 1.0 - 0.5 * (1.0 - (1.0 - alarm) ** (1.0 / x.shape[1]))
-    level = float(student_t.ppf(sidak, n - 2))
+    level = float(stdtrit(n - 2, sidak))
     return np.nonzero(np.abs(slope) > level * np.maximum(se, 1e-30))[0]
 
 

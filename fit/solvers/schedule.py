@@ -113,12 +113,14 @@ class Phase(BaseModel):
 
 #: The default schedule: Adam with fresh seeds at half resolution and 8 spp is cheap and robust from
 #: far away (its scale-free steps also move a parameter started next to a bound, where the sigmoid
-#: is flat); then the stochastic Gauss-Newton `gn` at full resolution, in two phases. 56 steps of 16
-#: spp relax, and the mean of their last half is handed on (a single iterate wanders 0.012-0.028
-#: around alpha 0.02 at 16 spp), with 4x the samples from a curvature refresh on where a value's
-#: steps are noisier than 10 % of it (`GNOptions.spp_limit`: a glossy lobe's steps at 16 spp jumped
-#: alpha 0.01 next to its bound). They run every step: ended once settled (`GNOptions.window`), the
-#: relaxation toward alpha 0.01-0.02 from a start at 0.2 stopped early (the torus at alpha 0.01
+#: is flat); then the stochastic Gauss-Newton `gn` at full resolution, in two phases. Up to 56 steps
+#: of 16 spp relax, and the mean of their last half is handed on (a single iterate wanders
+#: 0.012-0.028 around alpha 0.02 at 16 spp), with 4x the samples from a curvature refresh on where a
+#: value's steps are noisier than 10 % of it (`GNOptions.spp_limit`: a glossy lobe's steps at 16 spp
+#: jumped alpha 0.01 next to its bound). It ends once relaxed (`GNOptions.relaxed`: quiet steps
+#: whose last half has no trend, from 30 steps at its last count; the Cycles sphere at 30 steps,
+#: where Adam left it within its noise); ended once settled over a window (`GNOptions.window`), the
+#: slow relaxation toward alpha 0.01-0.02 from a start at 0.2 stopped early (the torus at alpha 0.01
 #: ended +49 to +69 % against +10 % with all 56 steps). Then steps of 64 spp are averaged, their
 #: curvature refreshed every 4 so that the uncertainty takes its Jacobians: 8 steps, and more (up to
 #: 32) until the average's Monte Carlo sd is within 1.5 % of every value (`precision`), its first
