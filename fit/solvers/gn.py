@@ -505,8 +505,8 @@ class GaussNewton(AbstractSolver):
         def finished(done: int) -> bool:
             """Whether the phase ends with `done` steps taken: settled (`window`), relaxed at a
             refresh (`relaxed`), or precise at a check (`precision`: after `steps`, then every
-            `refresh`). Asked of the state
-            before a step, so that a resumed phase asks it of the state it saved."""
+            `refresh`). Asked of the state before a step (after a raise of its samples), so
+            that a resumed phase asks it of the state it saved."""
             nonlocal settled_at, relaxed_at, noisy
             window = options.window
             if window and len(iterates) > window and settled(iterates[-window - 1 :], tol):
