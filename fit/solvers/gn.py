@@ -76,10 +76,10 @@ class GNOptions(Options):
     `max_step_noise`, as `spp_limit` asks) and, over its steps since its start or its last raise
     of samples (`spp_limit`), at least `RELAXED_MIN` of them, no value has a trend over their
     last half (`trending`): its result, the mean of its last `average` of them, no longer moves.
-    A glossy lobe's alpha can sit still for 20 steps before it relaxes (its curvature swollen by
-    the first Jacobians' noise, its steps too short until later refreshes average it away):
-    measured on the recovery sweep's torus at alpha 0.005-0.02 (fit seed 1), where Adam handed
-    on 0.022-0.023 and alpha fell only from step 20-30 on."""
+    A glossy lobe's alpha can sit still for 20 steps before it relaxes: on the recovery sweep's
+    torus at alpha 0.005-0.02 (fit seed 1) Adam handed on 0.022-0.023 and alpha fell only from
+    step 20-30 on (plausibly its curvature swollen by the first Jacobians' noise, `_curvature`,
+    its steps too short until later refreshes average that away)."""
     tolerance: PositiveFloat = 1.0
     """With `window`: the net move that counts as settled, in units of what noise alone gives
     (`settled`; smaller: stricter)."""
