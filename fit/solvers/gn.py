@@ -312,13 +312,10 @@ def drifting(iterates, eta: float) -> np.ndarray | None:
         return None
     half = taken // 2
     first, second = x[:half], x[half:]
-    rho = min(max(1.0 - eta, 0.0), 0.9)
-    inflation = (1.0 + rho) / (1.0 - rho)
     # the noise from the second half alone: the first one's drift would swell it
     spread = second.std(axis=0, ddof=1)
-    se = spread * np.sqrt(inflation * (1.0 / half + 1.0 / (taken - half)))
-    sidak = 1.0 - 0.5 * (1.0 - (1.0 - BURN_IN_ALARM) ** (1.0 / x.shape[1]))
-    level = float(stdtrit(taken - half - 1, sidak))
+    se = spread * np.sqrt(_ar1_inflation(eta) * (1.0 / half + 1.0 / (taken - half)))
+    level = _level(BURN_IN_ALARM, x.shape[1], taken - half - 1)
     moved = np.abs(second.mean(axis=0) - first.mean(axis=0))
     return np.nonzero(moved > level * np.maximum(se, 1e-30))[0]
 
@@ -346,11 +343,23 @@ def trending(iterates, eta: float, alarm: float = TREND_ALARM) -> np.ndarray | N
     slope = t @ centred / (t @ t)
     residual = centred - np.outer(t, slope)
     sigma = np.sqrt(np.sum(residual**2, axis=0) / (n - 2))
-    rho = min(max(1.0 - eta, 0.0), 0.9)
-    se = sigma * np.sqrt((1.0 + rho) / (1.0 - rho) / (t @ t))
-    sidak = 1.0 - 0.5 * (1.0 - (1.0 - alarm) ** (1.0 / x.shape[1]))
-    level = float(stdtrit(n - 2, sidak))
+    se = sigma * np.sqrt(_ar1_inflation(eta) / (t @ t))
+    level = _level(alarm, x.shape[1], n - 2)
     return np.nonzero(np.abs(slope) > level * np.maximum(se, 1e-30))[0]
+
+
+def _ar1_inflation(eta: float) -> float:
+    """How much a mean's (or a slope's) variance over a `gn` phase's iterates exceeds that of
+    independent ones: an AR(1) of coefficient 1 - eta (at most 0.9), (1 + rho) / (1 - rho)."""
+    rho = min(max(1.0 - eta, 0.0), 0.9)
+    return (1.0 + rho) / (1.0 - rho)
+
+
+def _level(alarm: float, columns: int, dof: int) -> float:
+    """Student's t quantile (`dof` degrees of freedom) that the largest of `columns` two-sided
+    statistics exceeds with chance `alarm` under noise alone (Sidak)."""
+    sidak = 1.0 - 0.5 * (1.0 - (1.0 - alarm) ** (1.0 / columns))
+    return float(stdtrit(dof, sidak))
 
 
 def _mser(series: np.ndarray, most: int) -> int:
@@ -512,12 +521,7 @@ class GaussNewton(AbstractSolver):
             if window and len(iterates) > window and settled(iterates[-window - 1 :], tol):
                 settled_at, noisy = done, []
                 return True
-            if (
-                options.relaxed
-                and done % options.refresh == 0
-                and done - since >= RELAXED_MIN
-                and len(iterates) == done
-            ):
+            if options.relaxed and done % options.refresh == 0 and done - since >= RELAXED_MIN:
                 # quiet steps (noisy ones hide a trend) and what the phase hands on (its last
                 # half since the raise) without one
                 noise = step_noise(problem, iterates[-options.refresh - 1 :])
