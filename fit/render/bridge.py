@@ -4,7 +4,8 @@ Dr.Jit 1.5 cannot wrap JAX -> Dr.Jit, so the bridge is `jax.pure_callback` into 
 derivative modes (see ../shared/FACTS.md for what each supports):
 
 - `"reverse"` (`jax.custom_vjp`): the backward pass is one `render_backward` per view; for many
-  parameters (textures) and for gradient-based minimisers (Adam, BFGS).
+  parameters (textures) and for gradient-based minimisers (Adam, BFGS). Its `paired(x, seed,
+  cotangent)` returns the image and a VJP from the same paths, in one pass.
 - `"jacobian"` (`jax.custom_jvp`): the callback returns the image and its full Jacobian (one
   `render_forward` per parameter component) and the tangent is `J @ t` in JAX, so every transform
   works (jvp, jacfwd, grad, linearize); for least squares on few parameters (Levenberg-Marquardt).
@@ -54,6 +55,16 @@ def make_render(
     def _jacobian(x, seed):
         return renderer.jacobian(np.asarray(x, np.float32), int(seed), spp, jacobian_spp)
 
+    def _render_vjp(x, seed, cotangent):
+        x, cotangent = (np.asarray(a, np.float32) for a in (x, cotangent))
+        return renderer.render_vjp(x, int(seed), spp, cotangent)
+
+    def paired(x, seed, cotangent):
+        """`(render(x, seed), J^T cotangent)` from the same paths: one reverse pass whose primal
+        pass is the image (`Renderer.render_vjp`); not differentiable."""
+        args = (x.astype(jnp.float32), seed, cotangent.astype(jnp.float32))
+        return jax.pure_callback(_render_vjp, (out, grad), *args, vmap_method="sequential")
+
     def call(x, seed):
         return jax.pure_callback(_render, out, x, seed, vmap_method="sequential")
 
@@ -79,6 +90,8 @@ def make_render(
             return g.astype(x.dtype), None
 
         render.defvjp(fwd, bwd)
+        if grad_spp in (None, spp):
+            render.paired = paired
         return render
 
     @jax.custom_jvp

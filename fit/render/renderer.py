@@ -13,6 +13,7 @@ from contextlib import contextmanager
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+from mitsuba.ad.integrators.common import ADIntegrator, RBIntegrator
 
 from captures.capture import Capture
 from captures.scene import bounding_sphere
@@ -72,35 +73,101 @@ def _sensor_floats(scene, sensor: int) -> tuple:
     )
 
 
-def _reverse_pass(scene, grad_in, seed, spp: int, keys: tuple, sensor: int, floats: tuple) -> list:
-    """Gradients of `<grad_in, render>` with respect to the parameters at `keys` (a frozen
-    function's body: Dr.Jit inputs only, the AD state set and cleared inside)."""
-    _rebuild_sensor(scene, sensor, floats)
-    params = mi.traverse(scene)
-    for key in keys:
-        dr.enable_grad(params[key])
-    params.update()
-    scene.integrator().render_backward(scene, params, grad_in, sensor, seed=seed, spp=spp)
-    grads = [dr.grad(params[key]) for key in keys]
-    for key in keys:
-        dr.disable_grad(params[key])
-    return grads
-
-
-def _forward_pass(scene, tangents: list, seed, spp: int, keys: tuple, sensor: int, floats: tuple):
-    """The forward-mode derivative of the render along `tangents` (one per parameter at `keys`;
-    a frozen function's body: Dr.Jit inputs only, the AD state set and cleared inside)."""
+@contextmanager
+def _differentiated(scene, keys: tuple, sensor: int, floats: tuple):
+    """A frozen pass's parameters (`mi.traverse`) with derivatives at `keys` enabled, then
+    cleared (the AD state set and cleared inside the frozen function's body; Dr.Jit inputs only)."""
     _rebuild_sensor(scene, sensor, floats)
     params = mi.traverse(scene)
     for key in keys:
         dr.enable_grad(params[key])
     params.update()  # values the plugins derive in `parameters_changed` carry derivatives
-    for key, tangent in zip(keys, tangents, strict=True):
-        dr.set_grad(params[key], tangent)
-    out = scene.integrator().render_forward(scene, params, sensor, seed=seed, spp=spp)
-    for key in keys:
-        dr.disable_grad(params[key])
-    return out
+    try:
+        yield params
+    finally:
+        for key in keys:
+            dr.disable_grad(params[key])
+
+
+def _reverse_pass(scene, grad_in, seed, spp: int, keys: tuple, sensor: int, floats: tuple) -> list:
+    """Gradients of `<grad_in, render>` with respect to the parameters at `keys` (a frozen
+    function's body)."""
+    with _differentiated(scene, keys, sensor, floats) as params:
+        scene.integrator().render_backward(scene, params, grad_in, sensor, seed=seed, spp=spp)
+        return [dr.grad(params[key]) for key in keys]
+
+
+def imaged(integrator) -> bool:
+    """Whether `_backward_with_image` can stand in for `integrator`'s reverse pass: a path-replay
+    integrator whose `render_backward` is Mitsuba's `RBIntegrator`'s own (`prb`, `prb_basic`,
+    `prbvolpath`; not the projective ones, which add boundary terms), without AOVs."""
+    own = getattr(type(integrator), "render_backward", None)
+    return own is RBIntegrator.render_backward and not integrator.aov_names()
+
+
+def _backward_with_image(integrator, scene, grad_in, sensor: int, seed, spp: int):
+    """`integrator.render_backward(scene, params, grad_in, sensor, seed, spp)` (an `imaged`
+    integrator's: the steps of Mitsuba 3.9's `RBIntegrator.render_backward`) that also returns
+    the image of its own primal pass, the one `mi.render` renders at this seed and spp: the
+    image and the gradient then share their paths, for one pass's cost instead of two."""
+    sensor = scene.sensors()[sensor]
+    film = sensor.film()
+    with dr.suspend_grad():
+        sampler, spp = integrator.prepare(sensor, seed, spp, [])
+        ray, weight, pos = integrator.sample_rays(scene, sensor, sampler)
+
+        def develop(value, alpha):
+            block = film.create_block()
+            block.set_coalesce(block.coalesce() and spp >= 4)
+            ADIntegrator._splat_to_block(
+                block, film, pos, value=value, weight=1.0, alpha=alpha, aovs=[],
+                wavelengths=ray.wavelengths,
+            )  # fmt: skip
+            film.put_block(block)
+            return film.develop()
+
+        # each sample's adjoint radiance: `grad_in` back through the splatting and the division
+        with dr.resume_grad():
+            ones = dr.full(mi.Spectrum, 1.0, dr.width(ray))
+            dr.enable_grad(ones)
+            image = develop(ones * weight, 1.0)
+            dr.set_grad(image, grad_in)
+            dr.enqueue(dr.ADMode.Backward, image)
+            dr.traverse(dr.ADMode.Backward)
+            adjoint = dr.grad(ones)
+        film.clear()
+        common = dict(scene=scene, ray=ray, depth=mi.UInt32(0), active=mi.Bool(True))
+        radiance, valid, _, state = integrator.sample(
+            mode=dr.ADMode.Primal, sampler=sampler.clone(), δL=None, δaovs=None, state_in=None,
+            **common,
+        )  # fmt: skip
+        # stored: the image's splatting evaluates the primal pass in a kernel of its own, and
+        # the reverse pass would otherwise trace it again into its own kernel
+        dr.eval(radiance, valid, state)
+        image = develop(radiance * weight, dr.select(valid, mi.Float(1), mi.Float(0)))
+        integrator.sample(
+            mode=dr.ADMode.Backward, sampler=sampler, δL=adjoint, δaovs=[], state_in=state,
+            **common,
+        )  # fmt: skip
+        dr.eval(image)  # with the reverse pass's side effects (the parameters' gradients)
+    return image
+
+
+def _reverse_pass_imaged(scene, grad_in, seed, spp: int, keys: tuple, sensor: int, floats: tuple):
+    """`_reverse_pass` that also returns its primal pass's image (`_backward_with_image`):
+    `(image, gradients)`."""
+    with _differentiated(scene, keys, sensor, floats) as params:
+        image = _backward_with_image(scene.integrator(), scene, grad_in, sensor, seed, spp)
+        return image, [dr.grad(params[key]) for key in keys]
+
+
+def _forward_pass(scene, tangents: list, seed, spp: int, keys: tuple, sensor: int, floats: tuple):
+    """The forward-mode derivative of the render along `tangents` (one per parameter at `keys`;
+    a frozen function's body)."""
+    with _differentiated(scene, keys, sensor, floats) as params:
+        for key, tangent in zip(keys, tangents, strict=True):
+            dr.set_grad(params[key], tangent)
+        return scene.integrator().render_forward(scene, params, sensor, seed=seed, spp=spp)
 
 
 @contextmanager
@@ -307,6 +374,7 @@ class _Group:
         # module functions, not bound methods: a Renderer holding its own bound methods is a
         # reference cycle, freed only by the cyclic collector, possibly inside a later recording
         self.primal, self.reverse = wrap(_primal), wrap(_reverse_pass)
+        self.reverse_imaged = wrap(_reverse_pass_imaged)
         self.forward = wrap(_forward_pass)
 
 
@@ -435,8 +503,33 @@ class Renderer:
 
     @_serialised
     def vjp(self, values: np.ndarray, seed: int, spp: int, cotangent: np.ndarray) -> np.ndarray:
-        """Gradient of `<cotangent, render(values)>` with respect to `values`."""
+        """Gradient of `<cotangent, render(values)>` with respect to `values`, from paths of their
+        own (the seed plus `GRAD_SEED_OFFSET`)."""
+        return self._reverse(values, seed + GRAD_SEED_OFFSET, spp, cotangent, False)[1]
+
+    @property
+    def imaged(self) -> bool:
+        """Whether `render_vjp` is one pass (`imaged` integrators): else it is two."""
+        return all(imaged(g.scene.integrator()) for g in self.groups)
+
+    @_serialised
+    def render_vjp(
+        self, values: np.ndarray, seed: int, spp: int, cotangent: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """`render(values, seed, spp)` and the gradient of `<cotangent, render(values)>` from the
+        same paths: one reverse pass whose primal pass is the image (`imaged`). The image and
+        the gradient are correlated: their product's expectation is not the product of theirs,
+        so `cotangent` must not depend on this image."""
+        if not self.imaged:
+            image = self.render(values, seed, spp)
+            return image, self._reverse(values, seed, spp, cotangent, False)[1]
+        return self._reverse(values, seed, spp, cotangent, True)
+
+    def _reverse(self, values, seed: int, spp: int, cotangent, with_image: bool):
+        """(the image with `with_image`, else None; the gradient of `<cotangent, render>`) from
+        reverse passes at `seed`."""
         grad = np.zeros(self.n_params, np.float32)
+        out = [None] * len(self.shapes)
         offsets = self._offsets()
         for g, group in enumerate(self.groups):
             self._set(group, values)
@@ -444,9 +537,15 @@ class Renderer:
             for sensor, views, floats in group.parts:
                 flat = [cotangent[offsets[v] : offsets[v + 1]] for v in views]
                 grad_in = mi.TensorXf(self._join(views, flat))
-                seed_s = self._seed(seed + GRAD_SEED_OFFSET, g, sensor)
+                seed_s = self._seed(seed, g, sensor)
+                args = (group.scene, grad_in, seed_s, spp, keys, sensor, floats)
                 with _no_gc():
-                    grads = group.reverse(group.scene, grad_in, seed_s, spp, keys, sensor, floats)
+                    if with_image:
+                        image, grads = group.reverse_imaged(*args)
+                        for v, part in zip(views, self._split(views, image), strict=True):
+                            out[v] = part
+                    else:
+                        grads = group.reverse(*args)
                 grads, i = iter(grads), 0
                 for f, ks in zip(self.free, group.targets, strict=True):
                     for key in ks:
@@ -458,7 +557,7 @@ class Renderer:
                             grad[i : i + f.size] += np.ravel(d).astype(np.float32)
                     i += f.size
             self._drop_ad(group, values)
-        return grad
+        return (np.concatenate(out) if with_image else None), grad
 
     def _drop_ad(self, group: _Group, values: np.ndarray) -> None:
         """Set the values again without derivatives after a pass that enabled them: unfrozen, a

@@ -15,7 +15,7 @@ from ..limits import MAX_SPP
 from ..material import to_physical
 from .adam import averaged_result
 from .base import AbstractSolver, Options, Outcome, Result
-from .problem import jax_seed, noise_ratio, residuals
+from .problem import image_residual, jax_seed, noise_ratio, residuals
 from .uncertainty import (
     CROSS_SEED_OFFSET,
     averaging_covariance,
@@ -111,7 +111,8 @@ class GNOptions(Options):
     pass (another seed), `J_B^T r`. `control`: the residual's mean over the phase's last steps,
     `m` (`CONTROL_WINDOW`), goes through the reverse pass, and what the step's image adds to it
     through the curvature's own Jacobian `J` (the refreshes' mean): `J^T (r - m) + J_B^T m`.
-    Same cost. Its expectation is the plain gradient's where `m` is the expected residual (so the
+    With loss `l2` and one sample count for both, the image is the reverse pass's own primal
+    pass (`_one_pass`): a step costs one pass, not an image and a pass. Its expectation is the plain gradient's where `m` is the expected residual (so the
     fixed point stays the expected loss's optimum: the Jacobian's error multiplies only `r - m`,
     zero on average), but the reverse pass's noise, which multiplies the image's in `J_B^T r`
     (alpha 0.02 on a sphere: a 16-spp gradient's Newton step has a standard deviation of 105 %
@@ -399,8 +400,10 @@ def settled(iterates: list, tolerance: float = 1.0) -> bool:
 
 def _gradients(problem, primal_spp: int, grad_spp: int, downscale: int, control: bool):
     """A `gn` step's gradients, jitted: `(loss, J_B^T r)` and `(J_B^T m, r)` at `(u, seed)`
-    (and `m`) from one render of `primal_spp` and its reverse pass of `grad_spp`."""
+    (and `m`) from one render of `primal_spp` and its reverse pass of `grad_spp` (the control
+    gradient's from one pass where it can: `_one_pass`)."""
     render = problem.render_fn("reverse", primal_spp, downscale, grad_spp=grad_spp)
+    one_pass = control and primal_spp == grad_spp and problem.loss == "l2"
     # the gains' derivative from an independent render: `J_B^T r` has the step's image in both
     # factors (biased low); the control gradient never multiplies the image by itself (`J` and
     # `m` come from other renders), so it saves that render
@@ -414,7 +417,41 @@ def _gradients(problem, primal_spp: int, grad_spp: int, downscale: int, control:
         r = residual(u, seed)
         return jnp.dot(jax.lax.stop_gradient(mean), r), r
 
+    if one_pass:
+        projected = _one_pass(problem, render, downscale)
     return jax.jit(jax.value_and_grad(loss)), jax.jit(jax.grad(projected, has_aux=True))
+
+
+def _one_pass(problem, render, downscale: int):
+    """The control gradient's `projected(u, seed, m)` (value `m . r`, its derivative through the
+    image `J_B^T m`; the residual `r` beside) from one reverse pass whose primal pass is the
+    step's image (the bridge's `render.paired`: `Renderer.render_vjp`), where a step rendered
+    its image and then a reverse pass of its own paths (the image a third of a step's time).
+    The two now share their paths, and the step's expected gradient stays the same: `J_B^T m`'s
+    expectation is `J^T m` for any `m` that does not depend on this step's paths (`m` is the
+    earlier steps' mean residual), and `J^T (r - m)` is linear in the image. (`J_B^T r`, the
+    plain gradient, keeps them apart: its expectation with shared paths picks up the gradient
+    of the image's variance: `GRAD_SEED_OFFSET`.) The residual is linear in the image (loss
+    `l2`), so its cotangent on the image, `m` through the weights and gains, needs no image."""
+    residual, n = image_residual(problem, downscale), problem.n_material
+    paired = getattr(render, "paired", None)
+    if paired is None:  # a plain JAX function of (x, seed): its own VJP
+
+        def paired(x, seed, cotangent):
+            image, vjp = jax.vjp(lambda x: render(x, seed), x)
+            return image, vjp(cotangent)[0]
+
+    def projected(u, seed, mean):
+        x = to_physical(problem.free, u[:n], jnp)
+        mean = jax.lax.stop_gradient(mean)
+        size = problem.target(downscale)[0].size
+        blank = jnp.zeros(size, jnp.float32)
+        cotangent = jax.grad(lambda image: jnp.dot(mean, residual(u, image)))(blank)
+        image, grad = paired(*jax.lax.stop_gradient((x, seed, cotangent)))
+        r = residual(u, image)
+        return jnp.dot(mean, r) + jnp.dot(grad, x.astype(grad.dtype)), r
+
+    return projected
 
 
 class GaussNewton(AbstractSolver):

@@ -297,6 +297,7 @@ def residuals(
     if profile:
         segments, n_segments = _gain_segments(problem, downscale)
         weight = sqrt_w * sqrt_w
+    plain = image_residual(problem, downscale)
 
     def residual(u, seed):
         x = to_physical(problem.free, u[:n], jnp)
@@ -308,16 +309,26 @@ def residuals(
             den = jax.ops.segment_sum(weight * fixed * other, segments, n_segments)
             gain = jax.lax.stop_gradient(problem.gain_multipliers(u[n:], downscale))
             return sqrt_w * shape_loss(image * gain - target, loss, scale), (num, den)
-        if problem.gain_views:
+        if independent:
             gain = problem.gain_multipliers(u[n:], downscale)
-            if independent:
-                other = jax.lax.stop_gradient(
-                    render(jax.lax.stop_gradient(x), seed + GAIN_SEED_OFFSET)
-                )
-                fixed = jax.lax.stop_gradient(gain)
-                image = fixed * image + (gain - fixed) * other  # value: gain * image
-            else:
-                image = image * gain
+            other = jax.lax.stop_gradient(render(jax.lax.stop_gradient(x), seed + GAIN_SEED_OFFSET))
+            fixed = jax.lax.stop_gradient(gain)
+            image = fixed * image + (gain - fixed) * other  # value: gain * image
+            return sqrt_w * shape_loss(image - target, loss, scale)
+        return plain(u, image)
+
+    return residual
+
+
+def image_residual(problem: Problem, downscale: int = 1):
+    """`residual(u, image)`: `residuals`' residual of a rendered `image` at the solver's `u`,
+    the gains' derivative through that image."""
+    target, sqrt_w = (jnp.asarray(a) for a in problem.target(downscale))
+    n, loss, scale = problem.n_material, problem.loss, problem.robust_scale()
+
+    def residual(u, image):
+        if problem.gain_views:
+            image = image * problem.gain_multipliers(u[n:], downscale)
         return sqrt_w * shape_loss(image - target, loss, scale)
 
     return residual

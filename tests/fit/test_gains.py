@@ -255,3 +255,40 @@ def test_gauss_newton_with_five_unknown_exposures():
     fitted = [result.values[f"gain.v{i}"] for i in range(len(gains))]
     np.testing.assert_allclose(fitted, gains, rtol=0.15)
     assert np.mean(np.log(fitted)) == pytest.approx(0.0, abs=1e-5)
+
+
+def test_one_pass_control_gradient_is_the_two_pass_one(monkeypatch):
+    """`gn`'s control gradient from one pass (`_one_pass`: the image and the reverse pass share
+    their paths) is the two-pass one, `m . r`'s gradient with `r` from `residuals`, where the
+    image does not depend on the seed: the same derivative through the weights, the gains (here
+    free, grey) and the values' transforms, and the same residual."""
+    from fit.solvers.gn import _gradients
+    from fit.solvers.problem import jax_seed, residuals
+
+    gain = np.array([1.25, 0.9, 1.0], np.float32)
+    cfg, capture = two_views(gain)
+    free = resolve(cfg.material, ["glaze.pigment", "glaze.roughness"])
+    problem = Problem(capture, cfg.material, free, gains="exposure")
+    size = sum(v.image.size for v in capture.views)
+    base = np.random.default_rng(0).uniform(0.1, 1.0, (size, 4)).astype(np.float32)
+
+    def image(x, seed):  # smooth in the values, the same for every seed
+        return jnp.asarray(base) @ jnp.stack([x[0], x[1] ** 2, jnp.sin(x[2]), jnp.sqrt(x[3])])
+
+    monkeypatch.setattr(problem, "render_fn", lambda *a, **k: image)
+    _, projected = _gradients(problem, 16, 16, 1, True)
+    residual = residuals(problem, image)
+
+    def two_pass(u, seed, mean):
+        r = residual(u, seed)
+        return jnp.dot(jax.lax.stop_gradient(mean), r), r
+
+    u = problem.unconstrained({"glaze.pigment": [0.2, 0.3, 0.4], "glaze.roughness": 0.1})
+    assert len(u) == problem.n_material + 1
+    u[-1] = 0.2  # the second view's log-gain
+    mean = np.random.default_rng(1).normal(size=size).astype(np.float32)
+    got, r_got = projected(jnp.asarray(u), jax_seed(3), jnp.asarray(mean))
+    want, r_want = jax.grad(two_pass, has_aux=True)(jnp.asarray(u), jax_seed(3), mean)
+    np.testing.assert_allclose(r_got, r_want, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4 * float(jnp.abs(want).max()))
+    assert np.all(np.asarray(want) != 0)
