@@ -111,8 +111,7 @@ class GNOptions(Options):
     pass (another seed), `J_B^T r`. `control`: the residual's mean over the phase's last steps,
     `m` (`CONTROL_WINDOW`), goes through the reverse pass, and what the step's image adds to it
     through the curvature's own Jacobian `J` (the refreshes' mean): `J^T (r - m) + J_B^T m`.
-    With loss `l2` and one sample count for both, the image is the reverse pass's own primal
-    pass (`_one_pass`): a step costs one pass, not an image and a pass. Its expectation is the plain gradient's where `m` is the expected residual (so the
+    Its expectation is the plain gradient's where `m` is the expected residual (so the
     fixed point stays the expected loss's optimum: the Jacobian's error multiplies only `r - m`,
     zero on average), but the reverse pass's noise, which multiplies the image's in `J_B^T r`
     (alpha 0.02 on a sphere: a 16-spp gradient's Newton step has a standard deviation of 105 %
@@ -122,6 +121,15 @@ class GNOptions(Options):
     noise: on the recovery sweep's sphere and torus at alpha 0.01-0.02 (256-spp targets) that
     ended alpha +5.5, -36, +25 and -48 % (BENCHMARKS, "Fitting: the measurements behind the
     default")."""
+    shared_paths: bool = False
+    """With `gradient = "control"`, loss `l2` and one sample count for the image and the reverse
+    pass: the step's image is its reverse pass's own primal pass (`_one_pass`), one pass a step
+    instead of an image and a pass (a 64-spp step of the Cycles sphere 545 ms against 722). The
+    gradient's expectation stays the same, its noise does not: the image's noise and the
+    reverse pass's now correlate, and with a large misfit in `m` that can add to it (the
+    recovery sweep's sphere at alpha 0.9: ior's relaxing steps noisier than 10 % of it, 15 %,
+    where they were quiet with paths of their own). Near the optimum `m` is small and so is
+    the difference: the default's averaged phase shares them."""
 
 
 #: With `primal_spp = "auto"` where the render's noise is at least `AUTO_RATIO` times the rest of
@@ -398,12 +406,14 @@ def settled(iterates: list, tolerance: float = 1.0) -> bool:
     return bool(np.all(net <= tolerance * z_p * np.sqrt(2.0) * spread))
 
 
-def _gradients(problem, primal_spp: int, grad_spp: int, downscale: int, control: bool):
+def _gradients(
+    problem, primal_spp: int, grad_spp: int, downscale: int, control: bool, shared: bool
+):
     """A `gn` step's gradients, jitted: `(loss, J_B^T r)` and `(J_B^T m, r)` at `(u, seed)`
-    (and `m`) from one render of `primal_spp` and its reverse pass of `grad_spp` (the control
-    gradient's from one pass where it can: `_one_pass`)."""
+    (and `m`) from one render of `primal_spp` and its reverse pass of `grad_spp` (with
+    `shared`, the control gradient's from one pass where it can: `_one_pass`)."""
     render = problem.render_fn("reverse", primal_spp, downscale, grad_spp=grad_spp)
-    one_pass = control and primal_spp == grad_spp and problem.loss == "l2"
+    one_pass = shared and control and primal_spp == grad_spp and problem.loss == "l2"
     # the gains' derivative from an independent render: `J_B^T r` has the step's image in both
     # factors (biased low); the control gradient never multiplies the image by itself (`J` and
     # `m` come from other renders), so it saves that render
@@ -515,7 +525,7 @@ class GaussNewton(AbstractSolver):
             primal_spp, grad_spp = options.primal_spp or spp, spp
         control = options.gradient == "control"
         value_and_grad, projected_grad = _gradients(
-            problem, primal_spp, grad_spp, downscale, control
+            problem, primal_spp, grad_spp, downscale, control, options.shared_paths
         )
         mean = None if resume is None else resume.get("mean_residual")
         # every step's iterate after it and (iterate before, gradient): the result averages the
@@ -586,7 +596,7 @@ class GaussNewton(AbstractSolver):
                     )
                     level, since = raised_to, i
                     value_and_grad, projected_grad = _gradients(
-                        problem, primal_spp, grad_spp, downscale, control
+                        problem, primal_spp, grad_spp, downscale, control, options.shared_paths
                     )
                     spec = next(f.spec for f in problem.free if f.key == worst)
                     raised = (

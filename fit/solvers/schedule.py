@@ -127,7 +127,9 @@ class Phase(BaseModel):
 #: steps left out while it still relaxes (`gn.burn_in`): a glossy lobe's noise decides (the Cycles
 #: torus at alpha 0.04 took 24-32 steps and ended within 3.3 %, where 8 steps ended +5.3, -5.3 and
 #: +5.8 % on seeds 0-2). A gradient's variance falls faster than 1 / spp (8x for 4x the samples at
-#: alpha 0.02), so the average is taken over steps of many samples; relaxing takes steps.
+#: alpha 0.02), so the average is taken over steps of many samples; relaxing takes steps. Its
+#: images are its reverse passes' own primal passes (`GNOptions.shared_paths`: a quarter less a
+#: step; not while relaxing, where a misfit in the running mean residual makes them noisier).
 #: Measurements: BENCHMARKS, "Fitting: the measurements behind the default" and "Low alpha".
 DEFAULT_SCHEDULE = (
     Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
@@ -150,6 +152,7 @@ DEFAULT_SCHEDULE = (
         average=1.0,
         precision=0.015,
         max_steps=32,
+        shared_paths=True,
     ),
 )
 

@@ -276,7 +276,7 @@ def test_one_pass_control_gradient_is_the_two_pass_one(monkeypatch):
         return jnp.asarray(base) @ jnp.stack([x[0], x[1] ** 2, jnp.sin(x[2]), jnp.sqrt(x[3])])
 
     monkeypatch.setattr(problem, "render_fn", lambda *a, **k: image)
-    _, projected = _gradients(problem, 16, 16, 1, True)
+    _, projected = _gradients(problem, 16, 16, 1, True, True)
     residual = residuals(problem, image)
 
     def two_pass(u, seed, mean):

@@ -324,7 +324,7 @@ def test_gauss_newton_auto_split_follows_the_residual(problem, monkeypatch):
     """`primal_spp = "auto"`: against a clean target the image renders at 4x the phase's spp and
     the reverse pass at a quarter, said in the phase's report; against a target three times
     brighter both keep the phase's spp, the image then from the reverse pass's own primal pass
-    (`Renderer.render_vjp`)."""
+    (`shared_paths`: `Renderer.render_vjp`)."""
     clean = problem.unconstrained(TRUTH)
     for factor, image_spp, reverse_spp in ((1.0, 16, 1), (3.0, 4, 4)):
         p = _against(problem, factor * problem.capture.views[0].image)
@@ -338,7 +338,7 @@ def test_gauss_newton_auto_split_follows_the_residual(problem, monkeypatch):
                 return method(values, seed, spp, *rest)
 
             monkeypatch.setattr(renderer, name, spy)
-        result = _gn(p, clean, 2, spp=4, primal_spp="auto")
+        result = _gn(p, clean, 2, spp=4, primal_spp="auto", shared_paths=True)
         if image_spp == reverse_spp:
             assert calls["render_vjp"] == [image_spp] * 2 and not calls["vjp"]
         else:
