@@ -126,10 +126,11 @@ class GNOptions(Options):
     pass: the step's image is its reverse pass's own primal pass (`_one_pass`), one pass a step
     instead of an image and a pass (a 64-spp step of the Cycles sphere 545 ms against 722). The
     gradient's expectation stays the same, its noise does not: the image's noise and the
-    reverse pass's now correlate, and with a large misfit in `m` that can add to it (the
-    recovery sweep's sphere at alpha 0.9: ior's relaxing steps noisier than 10 % of it, 15 %,
-    where they were quiet with paths of their own). Near the optimum `m` is small and so is
-    the difference: the default's averaged phase shares them."""
+    reverse pass's now correlate through `m`. Measured on the recovery sweep (BENCHMARKS,
+    "Quality presets"): in the relaxing phase the sphere at alpha 0.9 found ior's steps 15 %
+    noisy where they were quiet and raised its samples; in the averaged phase the sphere's
+    cases averaged fewer or as many steps, but the torus at alpha 0.01 ended +27 and +31 % in
+    two sweeps against +6 and +8 % with paths of their own. The default does not share them."""
 
 
 #: With `primal_spp = "auto"` where the render's noise is at least `AUTO_RATIO` times the rest of

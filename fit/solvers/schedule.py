@@ -84,6 +84,18 @@ class Phase(BaseModel):
             )
         if limit is not None and limit < self.steps:
             raise FieldError("max_steps", f"= {limit} is below steps = {self.steps}; raise it")
+        if getattr(self._options, "shared_paths", False):
+            if self._options.gradient != "control":
+                raise FieldError(
+                    "shared_paths", 'shares the control gradient\'s paths; set gradient = "control"'
+                )
+            primal = self._options.primal_spp
+            if primal not in (None, "auto", self.spp):  # "auto": shared where it keeps one
+                raise FieldError(
+                    "shared_paths",
+                    f"needs the image at the reverse pass's spp = {self.spp}; remove primal_spp "
+                    f"= {primal!r}",
+                )
         most = getattr(self._options, "spp_limit", None)
         if most is not None and most <= self.spp:
             raise FieldError(
@@ -127,9 +139,7 @@ class Phase(BaseModel):
 #: steps left out while it still relaxes (`gn.burn_in`): a glossy lobe's noise decides (the Cycles
 #: torus at alpha 0.04 took 24-32 steps and ended within 3.3 %, where 8 steps ended +5.3, -5.3 and
 #: +5.8 % on seeds 0-2). A gradient's variance falls faster than 1 / spp (8x for 4x the samples at
-#: alpha 0.02), so the average is taken over steps of many samples; relaxing takes steps. Its
-#: images are its reverse passes' own primal passes (`GNOptions.shared_paths`: a quarter less a
-#: step; not while relaxing, where a misfit in the running mean residual makes them noisier).
+#: alpha 0.02), so the average is taken over steps of many samples; relaxing takes steps.
 #: Measurements: BENCHMARKS, "Fitting: the measurements behind the default" and "Low alpha".
 DEFAULT_SCHEDULE = (
     Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
@@ -152,7 +162,6 @@ DEFAULT_SCHEDULE = (
         average=1.0,
         precision=0.015,
         max_steps=32,
-        shared_paths=True,
     ),
 )
 

@@ -158,6 +158,16 @@ FIT_CASES: list[Case] = [
         ("fit.toml", "fit.phases[0].spp_limit", "does not raise spp = 1"),
     ),
     (
+        "fit-phase-shared-paths-with-primal-spp",
+        fit_cfg('solver = "adam"\n', 'solver = "gn"\nprimal_spp = 4\nshared_paths = true\n'),
+        ("fit.toml", "fit.phases[0].shared_paths", "remove primal_spp = 4"),
+    ),
+    (
+        "fit-phase-shared-paths-reverse-gradient",
+        fit_cfg('solver = "adam"\n', 'solver = "gn"\ngradient = "reverse"\nshared_paths = true\n'),
+        ("fit.toml", "fit.phases[0].shared_paths", 'set gradient = "control"'),
+    ),
+    (
         "fit-phase-hold-string",
         fit_cfg("spp = 1\n", 'spp = 1\nhold = "glaze.ior"\n'),
         ("fit.toml", "fit.phases[0].hold", "should be an array"),
