@@ -129,8 +129,9 @@ class GNOptions(Options):
     reverse pass's now correlate through `m`. Measured on the recovery sweep (BENCHMARKS,
     "Quality presets"): in the relaxing phase the sphere at alpha 0.9 found ior's steps 15 %
     noisy where they were quiet and raised its samples; in the averaged phase the sphere's
-    cases averaged fewer or as many steps, but the torus at alpha 0.01 ended +27 and +31 % in
-    two sweeps against +6 and +8 % with paths of their own. The default does not share them."""
+    cases averaged fewer or as many steps, but the torus at alpha 0.01 ended +27 % (2.7 sd)
+    against +8 % with paths of their own (and +31 % against +3 % with the relaxing phase's
+    reverse pass at 4 spp). The default does not share them."""
 
 
 #: With `primal_spp = "auto"` where the render's noise is at least `AUTO_RATIO` times the rest of
