@@ -108,8 +108,10 @@ def imaged(integrator) -> bool:
 def _backward_with_image(integrator, scene, grad_in, sensor: int, seed, spp: int):
     """`integrator.render_backward(scene, params, grad_in, sensor, seed, spp)` (an `imaged`
     integrator's: the steps of Mitsuba 3.9's `RBIntegrator.render_backward`) that also returns
-    the image of its own primal pass, the one `mi.render` renders at this seed and spp: the
-    image and the gradient then share their paths, for one pass's cost instead of two."""
+    the image of its own primal pass, the one `mi.render` renders at this seed and spp (its
+    radiance stored between two kernels, where `mi.render` has one: now and then a branch's
+    float rounding flips a sample, 2 of 1296 pixels on a thin-lens batch): the image and the
+    gradient then share their paths, for one pass's cost instead of two."""
     sensor = scene.sensors()[sensor]
     film = sensor.film()
     with dr.suspend_grad():

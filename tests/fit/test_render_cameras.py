@@ -12,7 +12,7 @@ import pytest
 from captures.capture import Capture, View
 from fit.config import load_render_config
 from fit.material import build_material, resolve
-from fit.render import Renderer, load_scene
+from fit.render import GRAD_SEED_OFFSET, Renderer, load_scene
 from fit.render.renderer import RERECORD_LIMIT
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -101,24 +101,37 @@ def test_a_batch_of_any_cameras_renders_frozen_and_right_beside_other_scenes(kin
     ]
     plain = Renderer(capture, material, free, False)
     cotangent = rng.normal(size=plain.size).astype(np.float32)
+    shared = 3 + GRAD_SEED_OFFSET  # `render_vjp` at this seed: the reverse pass of `vjp`'s
     expected = [
-        (plain.render(x, 3, 4), plain.vjp(x, 3, 4, cotangent), plain.jacobian(x, 3, 2)[1])
+        (
+            plain.render(x, 3, 4),
+            plain.vjp(x, 3, 4, cotangent),
+            plain.jacobian(x, 3, 2)[1],
+            plain.render(x, shared, 4),
+        )
         for x in xs
     ]
     frozen = Renderer(capture, material, free)
     (group,) = frozen.groups
     for _ in range(2):  # recordings, then replays
-        for x, (image, grad, jac) in zip(xs, expected, strict=True):
+        for x, (image, grad, jac, shared_image) in zip(xs, expected, strict=True):
             np.testing.assert_allclose(frozen.render(x, 3, 4), image, rtol=1e-4, atol=1e-6)
             # a small component differed 1.4 % in one order of the suite (a path's branch, as
             # below): held to 1e-3 of the largest; wrong replays were 15-35 % off
             scale = 1e-3 * float(np.abs(grad).max())
             np.testing.assert_allclose(frozen.vjp(x, 3, 4, cotangent), grad, rtol=0.01, atol=scale)
+            # one pass: the image of its own primal pass (its radiance stored between two
+            # kernels, where `render` has one: a branch's rounding now and then flips a
+            # sample, measured 2 of 1296 pixels) and the same gradient
+            one_image, one_grad = frozen.render_vjp(x, shared, 4, cotangent)
+            flipped = ~np.isclose(one_image, shared_image, rtol=1e-4, atol=1e-6)
+            assert flipped.mean() < 0.005, flipped.mean()
+            np.testing.assert_allclose(one_grad, grad, rtol=0.01, atol=5 * scale)
             mismatched = ~np.isclose(frozen.jacobian(x, 3, 2)[1], jac, rtol=1e-3, atol=1e-5)
             # beside other scenes a sample's path now and then differs (float rounding at a
             # branch): measured up to 15 of 19440 entries; the wrong replays were 15-35 %
             assert mismatched.mean() < 0.005, mismatched.mean()
-    passes = (group.primal, group.reverse, group.forward)
+    passes = (group.primal, group.reverse, group.forward, group.reverse_imaged)
     if len(set(kinds)) == 1:
         assert all(f.frozen is not None for f in passes)
     else:  # a thin-lens sensor beside other kinds records again on every call: then plain
