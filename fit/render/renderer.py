@@ -172,6 +172,63 @@ def _forward_pass(scene, tangents: list, seed, spp: int, keys: tuple, sensor: in
         return scene.integrator().render_forward(scene, params, sensor, seed=seed, spp=spp)
 
 
+def _jacobian_pass(scene, columns: list, seed, spp: int, keys: tuple, sensor: int, floats: tuple):
+    """`(image, [the render's forward-mode derivative along each column's tangents])` from one
+    primal pass (the steps of Mitsuba 3.9's `RBIntegrator.render_forward`, its primal pass shared
+    by the columns: that method renders it again for each, its forward pass needing the primal
+    radiance). The image is the one `mi.render` renders at this seed and spp (`imaged`
+    integrators; the radiance is stored between kernels, as in `_backward_with_image`)."""
+    with _differentiated(scene, keys, sensor, floats) as params:
+        integrator = scene.integrator()
+        camera = scene.sensors()[sensor]
+        film = camera.film()
+        with dr.suspend_grad():
+            sampler, spp = integrator.prepare(camera, seed, spp, [])
+            ray, weight, pos = integrator.sample_rays(scene, camera, sampler)
+
+            def develop(value, valid):
+                block = film.create_block()
+                block.set_coalesce(block.coalesce() and spp >= 4)
+                ADIntegrator._splat_to_block(
+                    block, film, pos, value=value * weight, weight=1.0,
+                    alpha=dr.select(valid, mi.Float(1), mi.Float(0)), aovs=[],
+                    wavelengths=ray.wavelengths,
+                )  # fmt: skip
+                film.put_block(block)
+                out = film.develop()
+                dr.eval(out)
+                film.clear()
+                return out
+
+            def common():
+                return dict(
+                    scene=scene, ray=mi.Ray3f(ray), depth=mi.UInt32(0), active=mi.Bool(True)
+                )
+
+            radiance, valid, _, state = integrator.sample(
+                mode=dr.ADMode.Primal, sampler=sampler.clone(), δL=None, δaovs=None,
+                state_in=None, **common(),
+            )  # fmt: skip
+            dr.eval(radiance, valid, state)
+            image, derivatives = develop(radiance, valid), []
+            for tangents in columns:
+                # the forward pass clears the AD graph it traverses: the parameters' derived
+                # values (`parameters_changed`) are derived again for each column
+                with dr.resume_grad():
+                    for key in keys:
+                        dr.disable_grad(params[key])
+                        dr.enable_grad(params[key])
+                    params.update()
+                    for key, tangent in zip(keys, tangents, strict=True):
+                        dr.set_grad(params[key], tangent)
+                δL, valid_2, _, _ = integrator.sample(
+                    mode=dr.ADMode.Forward, sampler=sampler.clone(), δL=None, δaovs=None,
+                    state_in=state, **common(),
+                )  # fmt: skip
+                derivatives.append(develop(δL, valid_2))
+    return image, derivatives
+
+
 @contextmanager
 def _no_gc():
     """Keep Python's cyclic garbage collector from running during a frozen call. Freeing a loaded
@@ -378,6 +435,7 @@ class _Group:
         self.primal, self.reverse = wrap(_primal), wrap(_reverse_pass)
         self.reverse_imaged = wrap(_reverse_pass_imaged)
         self.forward = wrap(_forward_pass)
+        self.jacobian = wrap(_jacobian_pass)
 
 
 class Renderer:
@@ -573,41 +631,56 @@ class Renderer:
     def jacobian(
         self, values: np.ndarray, seed: int, spp: int, jacobian_spp: int | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
-        """(image, d image / d values) with one forward-mode render per parameter component.
+        """(image, d image / d values): a forward-mode pass per parameter component, all from one
+        primal pass (`_jacobian_pass`, `imaged` integrators: 1.7x faster than Mitsuba's
+        `render_forward` per column, which renders the primal pass again for each).
 
         By default all with the image's seed and spp: the exact Jacobian of this seed's image (what
         LM needs to converge on a fixed objective, whose optimum is biased at low spp: the noise's
         own gradient enters). With `jacobian_spp` the Jacobian is rendered with a decorrelated seed
         at that spp: then `J^T r` is an unbiased gradient, and a cheap Jacobian preconditions an
         expensive, accurate residual."""
-        image = self.render(values, seed, spp)
         j_seed, j_spp = (
             (seed, spp) if jacobian_spp is None else (seed + GRAD_SEED_OFFSET, jacobian_spp)
         )
+        # one primal pass for the image and every column (`_jacobian_pass`) where the integrator
+        # allows it, else a forward pass per column, each rendering its primal pass again
+        shared = self.imaged
+        image = None if shared and jacobian_spp is None else self.render(values, seed, spp)
+        out = [None] * len(self.shapes)
         jac = np.zeros((self.size, self.n_params), np.float32)
         offsets = self._offsets()
         for g, group in enumerate(self.groups):
             self._set(group, values)
             keys = tuple(k for ks in group.targets for k in ks)
-            column = 0
-            for f in self.free:
-                for c in range(f.size):
-                    # every parameter gets a tangent (zero but this column's): one AD graph, one
-                    # kernel for all columns (a tangent on one parameter alone is a new kernel,
-                    # ~10 s of LLVM each for the cup)
-                    tangents = [
-                        self._tangent(group, other, key, c if other is f else None)
-                        for other, other_keys in zip(self.free, group.targets, strict=True)
-                        for key in other_keys
-                    ]
-                    for sensor, views, floats in group.parts:
-                        seed_s = self._seed(j_seed, g, sensor)
-                        with _no_gc():
-                            out = group.forward(
-                                group.scene, tangents, seed_s, j_spp, keys, sensor, floats
-                            )
-                        for v, part in zip(views, self._split(views, out), strict=True):
-                            jac[offsets[v] : offsets[v + 1], column] = part
-                    column += 1
+            # every parameter gets a tangent in every column (zero but the column's own): one AD
+            # graph, one kernel for all columns (a tangent on one parameter alone is a new
+            # kernel, ~10 s of LLVM each for the cup)
+            columns = [
+                [
+                    self._tangent(group, other, key, c if other is f else None)
+                    for other, other_keys in zip(self.free, group.targets, strict=True)
+                    for key in other_keys
+                ]
+                for f in self.free
+                for c in range(f.size)
+            ]
+            for sensor, views, floats in group.parts:
+                seed_s = self._seed(j_seed, g, sensor)
+                with _no_gc():
+                    if shared:
+                        primal, derivatives = group.jacobian(
+                            group.scene, columns, seed_s, j_spp, keys, sensor, floats
+                        )
+                        for v, part in zip(views, self._split(views, primal), strict=True):
+                            out[v] = part
+                    else:
+                        derivatives = [
+                            group.forward(group.scene, t, seed_s, j_spp, keys, sensor, floats)
+                            for t in columns
+                        ]
+                for column, derivative in enumerate(derivatives):
+                    for v, part in zip(views, self._split(views, derivative), strict=True):
+                        jac[offsets[v] : offsets[v + 1], column] = part
             self._drop_ad(group, values)
-        return image, jac
+        return (np.concatenate(out) if image is None else image), jac

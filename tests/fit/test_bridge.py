@@ -42,6 +42,41 @@ def test_reverse_and_forward_derivatives_agree(problem):
     np.testing.assert_allclose(vjp, jac.T @ c, rtol=1e-3, atol=1e-3 * np.abs(vjp).max())
 
 
+def flipped(a: np.ndarray, b: np.ndarray) -> float:
+    """The fraction of entries where `a` and `b` differ by more than float32 rounding: a frozen
+    replay's kernels are compiled with other literals than a plain call's, and now and then a
+    branch's rounding sends a sample down another path (whole pixels, a sample's worth each;
+    wrong replays were 15-35 % off everywhere)."""
+    return float(np.mean(~np.isclose(a, b, rtol=1e-3, atol=1e-5)))
+
+
+def test_a_jacobians_columns_share_one_primal_pass(problem, monkeypatch):
+    """`jacobian`'s one primal pass for all columns gives the image `render` gives and the
+    columns Mitsuba's `render_forward` gives one by one at the same seed: exactly unfrozen; its
+    frozen replays beside other scenes with a few samples flipped (measured: 13 of 3456 pixels
+    of the image, 12 of 51840 entries of the Jacobian)."""
+    cfg, capture = two_views()
+    free = resolve(cfg.material, KEYS)
+    x = truth_vector()
+    for freeze in (False, True):
+        renderer = Renderer(capture, cfg.material, free, freeze=freeze)
+        assert renderer.imaged
+        # two recordings (Dr.Jit's auto-opaque literals), then replays
+        runs = [renderer.jacobian(x * np.float32(1 + 0.05 * k), 3 + k, 4) for k in range(4)]
+        with monkeypatch.context() as m:
+            m.setattr(Renderer, "imaged", property(lambda self: False))  # per column
+            columns = [renderer.jacobian(x * np.float32(1 + 0.05 * k), 3 + k, 4) for k in range(4)]
+        for (image, jac), (image_1, jac_1) in zip(runs, columns, strict=True):
+            assert np.all(np.any(jac != 0, axis=0))
+            if freeze:
+                assert flipped(image, image_1) < 0.005
+                assert flipped(jac, jac_1) < 0.005
+            else:
+                np.testing.assert_array_equal(image, image_1)
+                np.testing.assert_array_equal(jac, jac_1)
+        assert not freeze or renderer.groups[0].jacobian.frozen is not None
+
+
 def test_a_reverse_pass_renders_its_own_image(problem):
     """`render_vjp`'s one pass gives the image `render` gives at its seed and the gradient `vjp`
     gives at the same seed, replay after replay of its frozen pass, as values and seeds change.
@@ -196,4 +231,4 @@ def test_frozen_renders_equal_unfrozen():
         _, jac_frozen = frozen.jacobian(x, seed, spp, jacobian_spp=2)
         _, jac_plain = plain.jacobian(x, seed, spp, jacobian_spp=2)
         assert np.any(jac_frozen != 0, axis=0).all()
-        np.testing.assert_allclose(jac_frozen, jac_plain, rtol=1e-4, atol=1e-6)
+        assert flipped(jac_frozen, jac_plain) < 0.005

@@ -84,10 +84,12 @@ def test_a_schedule_stopped_after_its_last_phase_resumes_with_its_loss_and_tail(
     assert whole.tail_variance is not None and whole.tail_gradients is not None
     assert resumed.loss == pytest.approx(whole.loss, rel=1e-5)  # float32 rounding: 2.4e-6 seen
     # Two runs of one schedule differ by the rounding of Dr.Jit's threaded sums (on 2 cores:
-    # 1.7e-4 in the iterates' scatter); a lost tail would be None or its noise left out.
+    # 1.7e-4 in the iterates' scatter) and by a frozen Jacobian's replay against its recording
+    # (now and then a sample flipped: 3e-4 of the largest gradient); a lost tail would be None
+    # or its noise left out.
     np.testing.assert_allclose(resumed.tail_variance, whole.tail_variance, rtol=2e-3)
     for a, b in zip(resumed.tail_gradients, whole.tail_gradients, strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-3 * np.abs(b).max())
     for key in whole.std:
         np.testing.assert_allclose(resumed.std[key], whole.std[key], rtol=1e-3)
 
