@@ -172,61 +172,61 @@ def _forward_pass(scene, tangents: list, seed, spp: int, keys: tuple, sensor: in
         return scene.integrator().render_forward(scene, params, sensor, seed=seed, spp=spp)
 
 
-def _jacobian_pass(scene, columns: list, seed, spp: int, keys: tuple, sensor: int, floats: tuple):
-    """`(image, [the render's forward-mode derivative along each column's tangents])` from one
-    primal pass (the steps of Mitsuba 3.9's `RBIntegrator.render_forward`, its primal pass shared
-    by the columns: that method renders it again for each, its forward pass needing the primal
-    radiance). The image is the one `mi.render` renders at this seed and spp (`imaged`
-    integrators; the radiance is stored between kernels, as in `_backward_with_image`)."""
+def _camera_samples(integrator, scene, sensor: int, seed, spp: int):
+    """`(film, sampler, spp, rays, their weights, their film positions)` of a sensor: the start
+    of Mitsuba 3.9's `RBIntegrator.render_forward`, the same for the same seed and spp."""
+    camera = scene.sensors()[sensor]
+    sampler, spp = integrator.prepare(camera, seed, spp, [])
+    return (camera.film(), sampler, spp, *integrator.sample_rays(scene, camera, sampler))
+
+
+def _develop(film, pos, value, valid, spp: int, ray):
+    """The film's image of samples' `value`s at `pos` (`RBIntegrator`'s splatting)."""
+    block = film.create_block()
+    block.set_coalesce(block.coalesce() and spp >= 4)
+    ADIntegrator._splat_to_block(
+        block, film, pos, value=value, weight=1.0,
+        alpha=dr.select(valid, mi.Float(1), mi.Float(0)), aovs=[], wavelengths=ray.wavelengths,
+    )  # fmt: skip
+    film.put_block(block)
+    return film.develop()
+
+
+def _jacobian_primal(scene, seed, spp: int, sensor: int, floats: tuple):
+    """`(image, each sample's radiance)`: the primal pass of Mitsuba 3.9's
+    `RBIntegrator.render_forward` (`imaged` integrators), kept for all of a Jacobian's columns
+    (`_jacobian_column`), where that method renders it again for each. The image is the one
+    `mi.render` renders at this seed and spp (its radiance stored between kernels, as in
+    `_backward_with_image`)."""
+    _rebuild_sensor(scene, sensor, floats)
+    integrator = scene.integrator()
+    with dr.suspend_grad():
+        film, sampler, spp, ray, weight, pos = _camera_samples(integrator, scene, sensor, seed, spp)
+        radiance, valid, _, state = integrator.sample(
+            mode=dr.ADMode.Primal, scene=scene, sampler=sampler, ray=ray, depth=mi.UInt32(0),
+            δL=None, δaovs=None, state_in=None, active=mi.Bool(True),
+        )  # fmt: skip
+        dr.eval(state)
+        return _develop(film, pos, radiance * weight, valid, spp, ray), state
+
+
+def _jacobian_column(scene, tangents, state, seed, spp: int, keys: tuple, sensor: int, floats):
+    """The forward-mode derivative of the render along `tangents` (as `_forward_pass`) from the
+    primal pass's radiance `state` at the same seed and spp (`_jacobian_primal`): the forward
+    pass of `RBIntegrator.render_forward` alone, one recording replayed for every column."""
     with _differentiated(scene, keys, sensor, floats) as params:
+        for key, tangent in zip(keys, tangents, strict=True):
+            dr.set_grad(params[key], tangent)
         integrator = scene.integrator()
-        camera = scene.sensors()[sensor]
-        film = camera.film()
         with dr.suspend_grad():
-            sampler, spp = integrator.prepare(camera, seed, spp, [])
-            ray, weight, pos = integrator.sample_rays(scene, camera, sampler)
-
-            def develop(value, valid):
-                block = film.create_block()
-                block.set_coalesce(block.coalesce() and spp >= 4)
-                ADIntegrator._splat_to_block(
-                    block, film, pos, value=value * weight, weight=1.0,
-                    alpha=dr.select(valid, mi.Float(1), mi.Float(0)), aovs=[],
-                    wavelengths=ray.wavelengths,
-                )  # fmt: skip
-                film.put_block(block)
-                out = film.develop()
-                dr.eval(out)
-                film.clear()
-                return out
-
-            def common():
-                return dict(
-                    scene=scene, ray=mi.Ray3f(ray), depth=mi.UInt32(0), active=mi.Bool(True)
-                )
-
-            radiance, valid, _, state = integrator.sample(
-                mode=dr.ADMode.Primal, sampler=sampler.clone(), δL=None, δaovs=None,
-                state_in=None, **common(),
+            film, sampler, spp, ray, weight, pos = _camera_samples(
+                integrator, scene, sensor, seed, spp
+            )
+            δL, valid, _, _ = integrator.sample(
+                mode=dr.ADMode.Forward, scene=scene, sampler=sampler, ray=ray,
+                depth=mi.UInt32(0), δL=None, δaovs=None, state_in=state, active=mi.Bool(True),
             )  # fmt: skip
-            dr.eval(radiance, valid, state)
-            image, derivatives = develop(radiance, valid), []
-            for tangents in columns:
-                # the forward pass clears the AD graph it traverses: the parameters' derived
-                # values (`parameters_changed`) are derived again for each column
-                with dr.resume_grad():
-                    for key in keys:
-                        dr.disable_grad(params[key])
-                        dr.enable_grad(params[key])
-                    params.update()
-                    for key, tangent in zip(keys, tangents, strict=True):
-                        dr.set_grad(params[key], tangent)
-                δL, valid_2, _, _ = integrator.sample(
-                    mode=dr.ADMode.Forward, sampler=sampler.clone(), δL=None, δaovs=None,
-                    state_in=state, **common(),
-                )  # fmt: skip
-                derivatives.append(develop(δL, valid_2))
-    return image, derivatives
+            return _develop(film, pos, δL * weight, valid, spp, ray)
 
 
 @contextmanager
@@ -435,7 +435,7 @@ class _Group:
         self.primal, self.reverse = wrap(_primal), wrap(_reverse_pass)
         self.reverse_imaged = wrap(_reverse_pass_imaged)
         self.forward = wrap(_forward_pass)
-        self.jacobian = wrap(_jacobian_pass)
+        self.jacobian_primal, self.jacobian_column = wrap(_jacobian_primal), wrap(_jacobian_column)
 
 
 class Renderer:
@@ -544,8 +544,12 @@ class Renderer:
 
     @staticmethod
     def _seed(seed: int, g: int, sensor: int):
-        """A sensor's seed: views rendered apart get independent samples."""
-        return mi.UInt32((int(seed) + 7919 * g + 104729 * sensor) % 2**32)
+        """A sensor's seed: views rendered apart get independent samples. Opaque: a frozen pass
+        records once (a literal seed that changed made Dr.Jit record it again, the cup's
+        Jacobian 2 s and its reverse pass twice more)."""
+        value = mi.UInt32((int(seed) + 7919 * g + 104729 * sensor) % 2**32)
+        dr.make_opaque(value)
+        return value
 
     @_serialised
     def render(self, values: np.ndarray, seed: int, spp: int) -> np.ndarray:
@@ -632,7 +636,7 @@ class Renderer:
         self, values: np.ndarray, seed: int, spp: int, jacobian_spp: int | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """(image, d image / d values): a forward-mode pass per parameter component, all from one
-        primal pass (`_jacobian_pass`, `imaged` integrators: 1.7x faster than Mitsuba's
+        primal pass (`_jacobian_primal`, `imaged` integrators: 1.7x faster than Mitsuba's
         `render_forward` per column, which renders the primal pass again for each).
 
         By default all with the image's seed and spp: the exact Jacobian of this seed's image (what
@@ -643,7 +647,7 @@ class Renderer:
         j_seed, j_spp = (
             (seed, spp) if jacobian_spp is None else (seed + GRAD_SEED_OFFSET, jacobian_spp)
         )
-        # one primal pass for the image and every column (`_jacobian_pass`) where the integrator
+        # one primal pass for the image and every column (`_jacobian_primal`) where the integrator
         # allows it, else a forward pass per column, each rendering its primal pass again
         shared = self.imaged
         image = None if shared and jacobian_spp is None else self.render(values, seed, spp)
@@ -669,11 +673,18 @@ class Renderer:
                 seed_s = self._seed(j_seed, g, sensor)
                 with _no_gc():
                     if shared:
-                        primal, derivatives = group.jacobian(
-                            group.scene, columns, seed_s, j_spp, keys, sensor, floats
+                        primal, state = group.jacobian_primal(
+                            group.scene, seed_s, j_spp, sensor, floats
                         )
                         for v, part in zip(views, self._split(views, primal), strict=True):
                             out[v] = part
+                        derivatives = [
+                            group.jacobian_column(
+                                group.scene, t, state, seed_s, j_spp, keys, sensor, floats
+                            )
+                            for t in columns
+                        ]
+                        del state
                     else:
                         derivatives = [
                             group.forward(group.scene, t, seed_s, j_spp, keys, sensor, floats)

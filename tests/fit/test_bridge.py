@@ -74,7 +74,7 @@ def test_a_jacobians_columns_share_one_primal_pass(problem, monkeypatch):
             else:
                 np.testing.assert_array_equal(image, image_1)
                 np.testing.assert_array_equal(jac, jac_1)
-        assert not freeze or renderer.groups[0].jacobian.frozen is not None
+        assert not freeze or renderer.groups[0].jacobian_column.frozen is not None
 
 
 def test_a_reverse_pass_renders_its_own_image(problem):

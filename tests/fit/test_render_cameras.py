@@ -131,7 +131,13 @@ def test_a_batch_of_any_cameras_renders_frozen_and_right_beside_other_scenes(kin
             # beside other scenes a sample's path now and then differs (float rounding at a
             # branch): measured up to 15 of 19440 entries; the wrong replays were 15-35 %
             assert mismatched.mean() < 0.005, mismatched.mean()
-    passes = (group.primal, group.reverse, group.jacobian, group.reverse_imaged)
+    passes = (
+        group.primal,
+        group.reverse,
+        group.jacobian_primal,
+        group.jacobian_column,
+        group.reverse_imaged,
+    )
     if len(set(kinds)) == 1:
         assert all(f.frozen is not None for f in passes)
     else:  # a thin-lens sensor beside other kinds records again on every call: then plain
@@ -159,7 +165,9 @@ def test_a_schedule_at_two_resolutions_renders_thin_lens_views_frozen():
     for downscale in (1, 2):
         (group,) = problem.renderer(downscale).groups
         assert len(group.parts) == 2
-        assert all(f.frozen is not None for f in (group.primal, group.reverse, group.jacobian))
+        assert all(
+            f.frozen is not None for f in (group.primal, group.reverse, group.jacobian_column)
+        )
 
 
 def test_a_recording_that_fails_runs_unfrozen():

@@ -82,7 +82,8 @@ def test_a_schedule_stopped_after_its_last_phase_resumes_with_its_loss_and_tail(
     again = Checkpoint(tmp_path / "checkpoint.npz", interval=1e9)
     resumed = run_schedule(problem, start, phases, 0, None, 2, again, resume=True)
     assert whole.tail_variance is not None and whole.tail_gradients is not None
-    assert resumed.loss == pytest.approx(whole.loss, rel=1e-5)  # float32 rounding: 2.4e-6 seen
+    # float32 rounding and a replay's flipped samples against the recording's: 4e-5 seen
+    assert resumed.loss == pytest.approx(whole.loss, rel=2e-4)
     # Two runs of one schedule differ by the rounding of Dr.Jit's threaded sums (on 2 cores:
     # 1.7e-4 in the iterates' scatter) and by a frozen Jacobian's replay against its recording
     # (now and then a sample flipped: 3e-4 of the largest gradient); a lost tail would be None
