@@ -300,11 +300,19 @@ def _write_texels(texels, values) -> None:
     dr.scatter(texels.array, flat, dr.arange(mi.UInt32, dr.width(flat)))
 
 
+def _owned(array):
+    """`array` (made from NumPy) in memory of Dr.Jit's own. Dr.Jit maps a NumPy array's memory,
+    and a frozen function records again when a mapped input's alignment changes, which it does
+    from one NumPy array to the next (the cup's reverse pass: 11 recordings of its 5 sensors
+    where 5 do)."""
+    return dr.copy(array)
+
+
 def _like(current, values):
     """`values` (numpy) as the Dr.Jit type of `current`."""
     values = np.asarray(values, np.float32)
     if isinstance(current, mi.TensorXf):
-        return mi.TensorXf(values.reshape(current.shape))
+        return _owned(mi.TensorXf(values.reshape(current.shape)))
     if values.size == 1:
         return type(current)(float(values.reshape(-1)[0]))
     return type(current)(*[float(x) for x in values.reshape(-1)])
@@ -600,7 +608,7 @@ class Renderer:
             keys = tuple(k for ks in group.targets for k in ks)
             for sensor, views, floats in group.parts:
                 flat = [cotangent[offsets[v] : offsets[v + 1]] for v in views]
-                grad_in = mi.TensorXf(self._join(views, flat))
+                grad_in = _owned(mi.TensorXf(self._join(views, flat)))
                 seed_s = self._seed(seed, g, sensor)
                 args = (group.scene, grad_in, seed_s, spp, keys, sensor, floats)
                 with _no_gc():
