@@ -547,6 +547,18 @@ class Renderer:
         dr.make_opaque(value)
         return value
 
+    def _columns(self, group: _Group):
+        """Each Jacobian column's tangents: every parameter gets one, zero but the column's own
+        (one AD graph, one kernel for all columns: a tangent on one parameter alone is a new
+        kernel, ~10 s of LLVM each for the cup)."""
+        for f in self.free:
+            for c in range(f.size):
+                yield [
+                    self._tangent(group, other, key, c if other is f else None)
+                    for other, other_keys in zip(self.free, group.targets, strict=True)
+                    for key in other_keys
+                ]
+
     def _offsets(self) -> list[int]:
         return list(np.cumsum([0] + [int(np.prod(s)) for s in self.shapes]))
 
@@ -644,8 +656,8 @@ class Renderer:
         self, values: np.ndarray, seed: int, spp: int, jacobian_spp: int | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """(image, d image / d values): a forward-mode pass per parameter component, all from one
-        primal pass (`_jacobian_primal`, `imaged` integrators: 1.7x faster than Mitsuba's
-        `render_forward` per column, which renders the primal pass again for each).
+        primal pass (`_jacobian_primal`, `imaged` integrators; Mitsuba's `render_forward` renders
+        the primal pass again for each).
 
         By default all with the image's seed and spp: the exact Jacobian of this seed's image (what
         LM needs to converge on a fixed objective, whose optimum is biased at low spp: the noise's
@@ -665,40 +677,25 @@ class Renderer:
         for g, group in enumerate(self.groups):
             self._set(group, values)
             keys = tuple(k for ks in group.targets for k in ks)
-            # every parameter gets a tangent in every column (zero but the column's own): one AD
-            # graph, one kernel for all columns (a tangent on one parameter alone is a new
-            # kernel, ~10 s of LLVM each for the cup)
-            columns = [
-                [
-                    self._tangent(group, other, key, c if other is f else None)
-                    for other, other_keys in zip(self.free, group.targets, strict=True)
-                    for key in other_keys
-                ]
-                for f in self.free
-                for c in range(f.size)
-            ]
             for sensor, views, floats in group.parts:
                 seed_s = self._seed(j_seed, g, sensor)
-                with _no_gc():
-                    if shared:
+                if shared:
+                    with _no_gc():
                         primal, state = group.jacobian_primal(
                             group.scene, seed_s, j_spp, sensor, floats
                         )
-                        for v, part in zip(views, self._split(views, primal), strict=True):
-                            out[v] = part
-                        derivatives = [
-                            group.jacobian_column(
-                                group.scene, t, state, seed_s, j_spp, keys, sensor, floats
+                    for v, part in zip(views, self._split(views, primal), strict=True):
+                        out[v] = part
+                for column, tangents in enumerate(self._columns(group)):
+                    with _no_gc():
+                        if shared:
+                            derivative = group.jacobian_column(
+                                group.scene, tangents, state, seed_s, j_spp, keys, sensor, floats
                             )
-                            for t in columns
-                        ]
-                        del state
-                    else:
-                        derivatives = [
-                            group.forward(group.scene, t, seed_s, j_spp, keys, sensor, floats)
-                            for t in columns
-                        ]
-                for column, derivative in enumerate(derivatives):
+                        else:
+                            derivative = group.forward(
+                                group.scene, tangents, seed_s, j_spp, keys, sensor, floats
+                            )
                     for v, part in zip(views, self._split(views, derivative), strict=True):
                         jac[offsets[v] : offsets[v + 1], column] = part
             self._drop_ad(group, values)
