@@ -300,12 +300,15 @@ def _write_texels(texels, values) -> None:
     dr.scatter(texels.array, flat, dr.arange(mi.UInt32, dr.width(flat)))
 
 
-def _owned(array):
-    """`array` (made from NumPy) in memory of Dr.Jit's own. Dr.Jit maps a NumPy array's memory,
-    and a frozen function records again when a mapped input's alignment changes, which it does
-    from one NumPy array to the next (the cup's reverse pass: 11 recordings of its 5 sensors
-    where 5 do)."""
-    return dr.copy(array)
+def _owned(tensor):
+    """`tensor` (made from NumPy) in memory of Dr.Jit's own: written into a new array. Dr.Jit
+    maps a NumPy array's memory, and a frozen function records again when a mapped input's
+    alignment changes, which it does from one NumPy array to the next (the cup's reverse pass:
+    11 recordings of its 5 sensors; `dr.copy` kept the mapping)."""
+    out = dr.zeros(mi.TensorXf, tensor.shape)
+    dr.scatter(out.array, tensor.array, dr.arange(mi.UInt32, dr.width(tensor.array)))
+    dr.eval(out)
+    return out
 
 
 def _like(current, values):
@@ -434,6 +437,12 @@ class _Group:
         self.params.keep([k for ks in self.targets for k in ks])
         #: (sensor index, its views, its thin lenses' floats for `_rebuild_sensor`)
         self.parts = [(k, v, _sensor_floats(self.scene, k)) for k, v in parts]
+        for k, _, floats in self.parts:
+            # what a pass's first call makes or rebuilds (the film's storage, a thin lens's
+            # members) made now: made inside it, it changed the next call's inputs, and Dr.Jit
+            # recorded that call again (each pass, each sensor)
+            self.scene.sensors()[k].film().prepare([])
+            _rebuild_sensor(self.scene, k, floats)
 
         def wrap(fn):
             return _Frozen(fn, len(self.parts)) if freeze else fn

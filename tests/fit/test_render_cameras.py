@@ -147,6 +147,33 @@ def test_a_batch_of_any_cameras_renders_frozen_and_right_beside_other_scenes(kin
     assert "has been recorded" not in capfd.readouterr().err
 
 
+@pytest.mark.parametrize("kinds", [["perspective"] * 2, ["thinlens"] * 2])
+def test_each_pass_records_once(kinds):
+    """A frozen pass records once per sensor and sample count, then replays as seeds, values and
+    cotangents change. A literal seed, the film's storage made by a pass's first call, and a
+    NumPy cotangent's alignment each made Dr.Jit record a pass again (the cup's reverse pass: 11
+    recordings of its 5 sensors). Thin lenses, one sensor each, are rebuilt inside each pass
+    (`_rebuild_sensor`): the first sensor's first pass records once more, having seen the other
+    sensors before their first rebuild."""
+    capture, material = batch_capture(kinds)
+    renderer = Renderer(capture, material, resolve(material, ["glaze.roughness"]))
+    (group,) = renderer.groups
+    passes = (group.primal, group.reverse, group.jacobian_primal, group.jacobian_column)
+    rng = np.random.default_rng(0)
+    counts = []
+    for k in range(4):
+        x = np.asarray([0.1 + 0.05 * k], np.float32)
+        cotangent = rng.normal(size=renderer.size).astype(np.float32)
+        renderer.render(x, k, 4)
+        renderer.vjp(x, k, 4, cotangent)
+        renderer.jacobian(x, k, 2)
+        counts.append([f.frozen.n_recordings for f in passes])
+    sensors = len(group.parts)
+    first = 1 if sensors > 1 else 0
+    assert counts[-1] == [sensors + first, sensors, sensors, sensors], counts
+    assert counts[1] == counts[-1], counts  # replays from the second call on
+
+
 def test_a_schedule_at_two_resolutions_renders_thin_lens_views_frozen():
     """The default schedule's half-resolution scenes stay alive beside the full-resolution ones:
     a thin-lens batch's full-resolution passes are frozen all the same (the cup: a `gn` phase of
