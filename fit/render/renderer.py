@@ -573,9 +573,8 @@ class Renderer:
 
     @staticmethod
     def _seed(seed: int, g: int, sensor: int):
-        """A sensor's seed: views rendered apart get independent samples. Opaque: a frozen pass
-        records once (a literal seed that changed made Dr.Jit record it again, the cup's
-        Jacobian 2 s and its reverse pass twice more)."""
+        """A sensor's seed: views rendered apart get independent samples. Opaque: a literal seed
+        that changed made Dr.Jit record a frozen pass again (the cup's Jacobian: 2 s)."""
         value = mi.UInt32((int(seed) + 7919 * g + 104729 * sensor) % 2**32)
         dr.make_opaque(value)
         return value
