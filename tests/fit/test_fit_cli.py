@@ -204,9 +204,11 @@ def test_ctrl_c_while_starting_is_one_line_and_exit_130(tmp_path, delay):
     slow target: once in about 40 runs the process ended by SIGINT (-2) after it had said 130
     (now exited through `fit.entry._exit_interrupted`, not reproduced since); the windows it
     found are tested in the default run in-process (test_interrupts_and_permissions: the
-    command's building)."""
+    command's building). The fit is long enough that every delay lands before its end: 60 steps
+    ended by 2.6 s, and a Ctrl-C while the run folder is written waits until it is whole
+    (exit 0, by design)."""
     small_capture(tmp_path / "cap")
-    (tmp_path / "fit.toml").write_text(RESUMABLE)
+    (tmp_path / "fit.toml").write_text(RESUMABLE.replace("steps = 60", "steps = 1000"))
     out = tmp_path / "run"
     process = _fit_process(tmp_path / "fit.toml", out)
     time.sleep(delay)
