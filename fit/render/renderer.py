@@ -105,6 +105,28 @@ def imaged(integrator) -> bool:
     return own is RBIntegrator.render_backward and not integrator.aov_names()
 
 
+def _camera_samples(integrator, scene, sensor: int, seed, spp: int):
+    """`(film, sampler, spp, rays, their weights, their film positions)` of a sensor: the start
+    of Mitsuba 3.9's `RBIntegrator.render_forward`, the same for the same seed and spp."""
+    camera = scene.sensors()[sensor]
+    sampler, spp = integrator.prepare(camera, seed, spp, [])
+    return (camera.film(), sampler, spp, *integrator.sample_rays(scene, camera, sampler))
+
+
+def _develop(film, pos, value, spp: int, ray, valid=None):
+    """The film's image of samples' `value`s at `pos` (`RBIntegrator`'s splatting; alpha 1
+    where `valid` is None)."""
+    alpha = 1.0 if valid is None else dr.select(valid, mi.Float(1), mi.Float(0))
+    block = film.create_block()
+    block.set_coalesce(block.coalesce() and spp >= 4)
+    ADIntegrator._splat_to_block(
+        block, film, pos, value=value, weight=1.0, alpha=alpha, aovs=[],
+        wavelengths=ray.wavelengths,
+    )  # fmt: skip
+    film.put_block(block)
+    return film.develop()
+
+
 def _backward_with_image(integrator, scene, grad_in, sensor: int, seed, spp: int):
     """`integrator.render_backward(scene, params, grad_in, sensor, seed, spp)` (an `imaged`
     integrator's: the steps of Mitsuba 3.9's `RBIntegrator.render_backward`) that also returns
@@ -112,27 +134,13 @@ def _backward_with_image(integrator, scene, grad_in, sensor: int, seed, spp: int
     radiance stored between two kernels, where `mi.render` has one: now and then a branch's
     float rounding flips a sample, 2 of 1296 pixels on a thin-lens batch): the image and the
     gradient then share their paths, for one pass's cost instead of two."""
-    sensor = scene.sensors()[sensor]
-    film = sensor.film()
     with dr.suspend_grad():
-        sampler, spp = integrator.prepare(sensor, seed, spp, [])
-        ray, weight, pos = integrator.sample_rays(scene, sensor, sampler)
-
-        def develop(value, alpha):
-            block = film.create_block()
-            block.set_coalesce(block.coalesce() and spp >= 4)
-            ADIntegrator._splat_to_block(
-                block, film, pos, value=value, weight=1.0, alpha=alpha, aovs=[],
-                wavelengths=ray.wavelengths,
-            )  # fmt: skip
-            film.put_block(block)
-            return film.develop()
-
+        film, sampler, spp, ray, weight, pos = _camera_samples(integrator, scene, sensor, seed, spp)
         # each sample's adjoint radiance: `grad_in` back through the splatting and the division
         with dr.resume_grad():
             ones = dr.full(mi.Spectrum, 1.0, dr.width(ray))
             dr.enable_grad(ones)
-            image = develop(ones * weight, 1.0)
+            image = _develop(film, pos, ones * weight, spp, ray)
             dr.set_grad(image, grad_in)
             dr.enqueue(dr.ADMode.Backward, image)
             dr.traverse(dr.ADMode.Backward)
@@ -146,7 +154,7 @@ def _backward_with_image(integrator, scene, grad_in, sensor: int, seed, spp: int
         # stored: the image's splatting evaluates the primal pass in a kernel of its own, and
         # the reverse pass would otherwise trace it again into its own kernel
         dr.eval(radiance, valid, state)
-        image = develop(radiance * weight, dr.select(valid, mi.Float(1), mi.Float(0)))
+        image = _develop(film, pos, radiance * weight, spp, ray, valid)
         integrator.sample(
             mode=dr.ADMode.Backward, sampler=sampler, δL=adjoint, δaovs=[], state_in=state,
             **common,
@@ -172,26 +180,6 @@ def _forward_pass(scene, tangents: list, seed, spp: int, keys: tuple, sensor: in
         return scene.integrator().render_forward(scene, params, sensor, seed=seed, spp=spp)
 
 
-def _camera_samples(integrator, scene, sensor: int, seed, spp: int):
-    """`(film, sampler, spp, rays, their weights, their film positions)` of a sensor: the start
-    of Mitsuba 3.9's `RBIntegrator.render_forward`, the same for the same seed and spp."""
-    camera = scene.sensors()[sensor]
-    sampler, spp = integrator.prepare(camera, seed, spp, [])
-    return (camera.film(), sampler, spp, *integrator.sample_rays(scene, camera, sampler))
-
-
-def _develop(film, pos, value, valid, spp: int, ray):
-    """The film's image of samples' `value`s at `pos` (`RBIntegrator`'s splatting)."""
-    block = film.create_block()
-    block.set_coalesce(block.coalesce() and spp >= 4)
-    ADIntegrator._splat_to_block(
-        block, film, pos, value=value, weight=1.0,
-        alpha=dr.select(valid, mi.Float(1), mi.Float(0)), aovs=[], wavelengths=ray.wavelengths,
-    )  # fmt: skip
-    film.put_block(block)
-    return film.develop()
-
-
 def _jacobian_primal(scene, seed, spp: int, sensor: int, floats: tuple):
     """`(image, each sample's radiance)`: the primal pass of Mitsuba 3.9's
     `RBIntegrator.render_forward` (`imaged` integrators), kept for all of a Jacobian's columns
@@ -207,7 +195,7 @@ def _jacobian_primal(scene, seed, spp: int, sensor: int, floats: tuple):
             δL=None, δaovs=None, state_in=None, active=mi.Bool(True),
         )  # fmt: skip
         dr.eval(state)
-        return _develop(film, pos, radiance * weight, valid, spp, ray), state
+        return _develop(film, pos, radiance * weight, spp, ray, valid), state
 
 
 def _jacobian_column(scene, tangents, state, seed, spp: int, keys: tuple, sensor: int, floats):
@@ -226,7 +214,7 @@ def _jacobian_column(scene, tangents, state, seed, spp: int, keys: tuple, sensor
                 mode=dr.ADMode.Forward, scene=scene, sampler=sampler, ray=ray,
                 depth=mi.UInt32(0), δL=None, δaovs=None, state_in=state, active=mi.Bool(True),
             )  # fmt: skip
-            return _develop(film, pos, δL * weight, valid, spp, ray)
+            return _develop(film, pos, δL * weight, spp, ray, valid)
 
 
 @contextmanager
@@ -685,24 +673,29 @@ class Renderer:
         for g, group in enumerate(self.groups):
             self._set(group, values)
             keys = tuple(k for ks in group.targets for k in ks)
-            for sensor, views, floats in group.parts:
-                seed_s = self._seed(j_seed, g, sensor)
+            seeds = [self._seed(j_seed, g, sensor) for sensor, _, _ in group.parts]
+            states = []  # each sensor's primal radiance, kept for all columns
+            for (sensor, views, floats), seed_s in zip(group.parts, seeds, strict=True):
                 if shared:
                     with _no_gc():
                         primal, state = group.jacobian_primal(
                             group.scene, seed_s, j_spp, sensor, floats
                         )
-                    for v, part in zip(views, self._split(views, primal), strict=True):
-                        out[v] = part
-                for column, tangents in enumerate(self._columns(group)):
+                    states.append(state)
+                    if image is None:
+                        for v, part in zip(views, self._split(views, primal), strict=True):
+                            out[v] = part
+            for column, tangents in enumerate(self._columns(group)):
+                for k, (sensor, views, floats) in enumerate(group.parts):
                     with _no_gc():
                         if shared:
                             derivative = group.jacobian_column(
-                                group.scene, tangents, state, seed_s, j_spp, keys, sensor, floats
-                            )
+                                group.scene, tangents, states[k], seeds[k], j_spp, keys, sensor,
+                                floats,
+                            )  # fmt: skip
                         else:
                             derivative = group.forward(
-                                group.scene, tangents, seed_s, j_spp, keys, sensor, floats
+                                group.scene, tangents, seeds[k], j_spp, keys, sensor, floats
                             )
                     for v, part in zip(views, self._split(views, derivative), strict=True):
                         jac[offsets[v] : offsets[v + 1], column] = part
