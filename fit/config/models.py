@@ -141,8 +141,9 @@ class FitSettings(StrictModel):
     """The schedule: solver phases run in turn (absent: the default schedule, its first Adam
     steps holding the mask thresholds when any is free)."""
     quality: Literal[QUALITIES] = "default"
-    """Trade time for accuracy: draft halves every phase's steps (and step limits) and fits the
-    full-resolution phases at half resolution, best doubles them (`schedule.at_quality`)."""
+    """Trade time for accuracy: draft halves every phase's steps (and step limits), fits the
+    full-resolution phases at half resolution and doubles a precise phase's tolerance, best
+    doubles the steps (`schedule.at_quality`)."""
     starts: PositiveInt = 1
     """Multi-start: run the schedule from this many starts (Ray workers), keep the best."""
     start_spread: PositiveFloat = 1.5

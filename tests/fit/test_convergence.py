@@ -15,7 +15,7 @@ from fit import timing
 from fit.solvers import DEFAULT_SCHEDULE, Phase
 from fit.solvers.base import Outcome
 from fit.solvers.gn import _averaged, burn_in, settled
-from fit.solvers.schedule import QUALITIES, at_quality
+from fit.solvers.schedule import DRAFT_PRECISION_MOST, QUALITIES, at_quality
 
 
 def _wandering(rng, coordinates: int, window: int, drift: float = 0.0) -> np.ndarray:
@@ -148,8 +148,8 @@ def test_an_averaged_phase_leaves_out_its_relaxation(problem, monkeypatch, burn_
 
 def test_quality_presets_change_every_phase():
     """draft: half the steps and step limits (rounded up), the full-resolution phases at half
-    resolution; best: twice the steps and limits; default: the phases as they are; their
-    other options kept."""
+    resolution, twice a precise phase's tolerance (at most `DRAFT_PRECISION_MOST`); best: twice
+    the steps and limits; default: the phases as they are; their other options kept."""
     assert at_quality(DEFAULT_SCHEDULE) == DEFAULT_SCHEDULE
     draft = at_quality(DEFAULT_SCHEDULE, "draft")
     best = at_quality(DEFAULT_SCHEDULE, "best")
@@ -160,10 +160,16 @@ def test_quality_presets_change_every_phase():
         limit = getattr(phase.options, "max_steps", None)
         if limit:
             assert d.options.max_steps == -(-limit // 2) and b.options.max_steps == 2 * limit
-        same = phase.options.model_dump(exclude={"max_steps"})
+        precision = getattr(phase.options, "precision", None)
+        if precision is not None:
+            assert d.options.precision == 2 * precision and b.options.precision == precision
+        same = phase.options.model_dump(exclude={"max_steps", "precision"})
         for changed in (d, b):
-            assert changed.options.model_dump(exclude={"max_steps"}) == same
+            assert changed.options.model_dump(exclude={"max_steps", "precision"}) == same
     assert any(getattr(p.options, "max_steps", None) for p in DEFAULT_SCHEDULE)  # checked above
+    assert any(getattr(p.options, "precision", 0) for p in DEFAULT_SCHEDULE)
+    loose = Phase(solver="gn", steps=8, spp=4, precision=0.4, max_steps=16)
+    assert at_quality((loose,), "draft")[0].options.precision == DRAFT_PRECISION_MOST
     odd = (Phase(solver="adam", steps=1, spp=4, downscale=3, lr=0.2),)
     assert at_quality(odd, "draft")[0].steps == 1 and at_quality(odd, "draft")[0].downscale == 3
     with pytest.raises(ValueError, match="choose one of draft, default, best"):
