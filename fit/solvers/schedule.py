@@ -197,7 +197,7 @@ TEXTURE_SCHEDULE = (
 #: (`QUALITIES`). Their time and error: BENCHMARKS, "Quality presets".
 
 
-#: The largest tolerance `draft` doubles a precise phase's to (`GNOptions.precision` < 1).
+#: The most `draft` raises a precise phase's tolerance to (`GNOptions.precision` is below 1).
 DRAFT_PRECISION_MOST = 0.5
 
 
