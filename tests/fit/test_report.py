@@ -173,3 +173,27 @@ def test_broken_image_is_caught(browser, report: Path, tmp_path: Path):
     problems = open_report(browser, copy / "report.html")
     assert "image not loaded: report/loss.png" in problems
     assert any(p.startswith("console:") for p in problems), problems
+
+
+@pytest.mark.parametrize("height, width", [(120, 160), (56, 64), (300, 100), (17, 400), (1, 1)])
+def test_a_views_figure_holds_its_titles_and_colour_bar(tmp_path: Path, monkeypatch, height, width):
+    """The view figure's fixed layout (panels and colour bar placed in inches) keeps every title
+    and colour-bar label inside the figure, for tall, wide, tiny and odd image sizes."""
+    from fit.output import report
+
+    drawn = {}
+
+    def keep(fig, path, dpi=110):
+        fig.canvas.draw()
+        drawn["inside"] = fig.get_tightbbox(fig.canvas.get_renderer())
+        drawn["figure"] = fig.bbox_inches
+        return path
+
+    monkeypatch.setattr(report, "save_figure", keep)
+    rng = np.random.default_rng(0)
+    photo = rng.uniform(0.1, 1.0, (height, width, 3)).astype(np.float32)
+    view = ViewPanel("v", photo, photo * 1.05, np.ones((height, width), np.float32), False, 0.05)
+    report._view_png(view, tmp_path / "v.png")
+    inside, figure = drawn["inside"], drawn["figure"]
+    assert inside.x0 >= -1e-3 and inside.y0 >= -1e-3, (inside, figure)
+    assert inside.x1 <= figure.x1 + 1e-3 and inside.y1 <= figure.y1 + 1e-3, (inside, figure)

@@ -478,20 +478,31 @@ def test_the_averaged_phase_does_not_walk_down_a_flat_side(problem, monkeypatch)
     assert np.std(alphas) < 0.15 * 0.01, alphas
 
 
-@pytest.mark.parametrize("red, held", [(0.0, False), (0.3, True)])
-def test_a_value_at_its_bound_does_not_hold_a_precise_phase(problem, red, held):
+@pytest.mark.parametrize(
+    "key, column, at_bound, inside",
+    [
+        ("glaze.pigment", 0, [0.0, 0.22, 0.55], [0.3, 0.22, 0.55]),
+        ("glaze.roughness", 3, 0.002, 0.1),
+    ],
+)
+@pytest.mark.parametrize("pinned", [True, False])
+def test_a_value_at_its_bound_does_not_hold_a_precise_phase(
+    problem, key, column, at_bound, inside, pinned
+):
     """`imprecise`: a component whose average sits at a bound is not what keeps a precise phase
-    going. Where the loss is flat in it (Oren-Nayar's sigma at 0 acts quadratically; here the
-    pigment's red with a column of 1e-5), the sd linearised at the average is large whatever
-    the iterates do; inside its range the same column still asks for more steps."""
+    going. Where the loss is flat in it (Oren-Nayar's sigma at 0 acts quadratically; here a
+    colour's component, or a scalar, with a column of 1e-5), the sd linearised at the average
+    is large whatever the iterates do; inside its range the same column still asks for more
+    steps."""
     from fit.solvers.gn import imprecise
 
-    truth = {"glaze.pigment": [red, 0.22, 0.55], "glaze.roughness": 0.1, "glaze.ior": 1.52}
+    truth = {"glaze.pigment": [0.1, 0.22, 0.55], "glaze.roughness": 0.1, "glaze.ior": 1.52}
+    truth[key] = at_bound if pinned else inside
     u = np.asarray(problem.unconstrained(truth), np.float64)
     rng = np.random.default_rng(0)
     jac = rng.normal(size=(500, u.size))
-    jac[:, 0] *= 1e-5
+    jac[:, column] *= 1e-5
     tail = u + 1e-6 * rng.normal(size=(8, u.size))
     gradients = 1e-4 * rng.normal(size=(8, u.size))
     keys = imprecise(problem, tail, gradients, jac, jac, 0.015)
-    assert keys == (["glaze.pigment"] if held else [])
+    assert keys == ([] if pinned else [key])
