@@ -73,13 +73,18 @@ class GNOptions(Options):
     relaxed: bool = False
     """The phase ends (outcome `converged`, its `steps` a limit) at a curvature refresh once it
     has relaxed: its last `refresh` steps are quiet (every value's step noise within
-    `max_step_noise`, as `spp_limit` asks) and, over its steps since its start or its last raise
-    of samples (`spp_limit`), at least `RELAXED_MIN` of them, no value has a trend over their
-    last half (`trending`): its result, the mean of its last `average` of them, no longer moves.
-    A glossy lobe's alpha can sit still for 20 steps before it relaxes: on the recovery sweep's
-    torus at alpha 0.005-0.02 (fit seed 1) Adam handed on 0.022-0.023 and alpha fell only from
-    step 20-30 on (plausibly its curvature swollen by the first Jacobians' noise, `_curvature`,
-    its steps too short until later refreshes average that away)."""
+    `max_step_noise`, as `spp_limit` asks, and none clipped to `max_step` while it moved a value
+    by more: `largest_move`) and, over its steps since its start or its last raise of samples
+    (`spp_limit`), at least `RELAXED_MIN` of them, no value has a trend over their last half
+    (`trending`; a value at its bound, `pinned`, moves nothing where its coordinate wanders):
+    its result, the mean of its last `average` of them, no longer moves. From
+    `RELAXED_MIN_DETERMINED` steps where the curvature is mostly signal (`determined`) and no
+    value has a trend over all of them: Adam handed on within the noise. A glossy lobe's alpha
+    can sit still for 20 steps before it relaxes: on the recovery sweep's torus at alpha
+    0.005-0.02 (fit seed 1) Adam handed on 0.022-0.023 and alpha fell only from step 20-30 on,
+    its first Jacobians mostly noise (alpha's `signal_share` 0.45-0.49 at the first refresh,
+    0.14-0.34 at the second: its curvature swollen, `_curvature`, its steps too short until
+    later refreshes average that away)."""
     tolerance: PositiveFloat = 1.0
     """With `window`: the net move that counts as settled, in units of what noise alone gives
     (`settled`; smaller: stricter)."""
@@ -198,9 +203,50 @@ CAUTION = 1.0
 #: With `relaxed`: the fewest steps a phase tests for drift (since its start or its last raise of
 #: samples).
 RELAXED_MIN = 30
+#: With `relaxed`: the fewest steps where the curvature the steps were taken with is mostly
+#: signal (`determined`) and no value has a trend over all of them (Adam handed on within the
+#: noise: the phase had nothing to relax).
+RELAXED_MIN_DETERMINED = 20
+#: The share of a coordinate's `J^T J` that is signal, not its Jacobians' noise, from which it
+#: counts as `determined`.
+DETERMINED_SHARE = 0.5
+
+
+def signal_share(j1: np.ndarray, j2: np.ndarray) -> np.ndarray:
+    """Each coordinate's share of its Gauss-Newton curvature that is signal: the two independent
+    Jacobians' cross product (unbiased for the noise-free `J^T J`) over the mean Jacobian's
+    plain one (which the noise swells: `_curvature`)."""
+    plain = 0.25 * (np.sum(j1 * j1, axis=0) + 2 * np.sum(j1 * j2, axis=0) + np.sum(j2 * j2, axis=0))
+    cross = np.sum(j1 * j2, axis=0)
+    return np.divide(cross, plain, out=np.zeros_like(cross), where=plain > 0)
+
+
+def determined(jac1: np.ndarray | None, jac2: np.ndarray | None) -> bool:
+    """Whether every coordinate's curvature from the two Jacobians (solver coordinates) the
+    last steps were taken with is mostly signal (`signal_share` at least `DETERMINED_SHARE`);
+    without them, no."""
+    return jac1 is not None and bool(np.all(signal_share(jac1, jac2) >= DETERMINED_SHARE))
+
+
 #: With `gradient = "control"`: the steps whose residuals make its running mean `m` (the mean
 #: of all so far for the first steps, then an exponential mean of this weight).
 CONTROL_WINDOW = 8
+
+
+def largest_move(problem, before: np.ndarray, after: np.ndarray) -> float:
+    """The largest change of a material value between two solver vectors, in physical values
+    as a share of its `precision_scale` at `before` (a value at its bound, where the transform
+    is flat, barely moves however far its coordinate goes)."""
+    n = problem.n_material
+    x0 = np.asarray(to_physical(problem.free, before[:n].astype(np.float32)), np.float64)
+    x1 = np.asarray(to_physical(problem.free, after[:n].astype(np.float32)), np.float64)
+    out, i = 0.0, 0
+    for f in problem.free:
+        part = slice(i, i + f.size)
+        i += f.size
+        scale = np.maximum(precision_scale(f.spec, x0[part]), 1e-12)
+        out = max(out, float(np.max(np.abs(x1[part] - x0[part]) / scale)))
+    return out
 
 
 def _curvature(j1: np.ndarray, j2: np.ndarray) -> np.ndarray:
@@ -248,6 +294,22 @@ def precision_scale(spec, x: np.ndarray) -> np.ndarray:
     return np.full_like(x, spec.upper - spec.lower)
 
 
+def pinned(problem, u: np.ndarray) -> np.ndarray:
+    """Which solver coordinates of `u` (the material's, then the gains') hold a value at a bound
+    of its range (`at_bounds`; never a gain, a texel or an unbounded value)."""
+    n = problem.n_material
+    x = np.asarray(to_physical(problem.free, np.asarray(u[:n], np.float32)), np.float64)
+    at = {b["parameter"] for b in at_bounds(problem.free, as_dict(problem.free, x))}
+    out = np.zeros(len(u), bool)
+    i = 0
+    for f in problem.free:
+        if not f.shape:  # `at_bounds` labels: `key`, or `key[k]` for a colour's components
+            labels = [f.key] if f.size == 1 else [f"{f.key}[{k}]" for k in range(f.size)]
+            out[i : i + f.size] = [label in at for label in labels]
+        i += f.size
+    return out
+
+
 def imprecise(problem, tail, gradients, jac1, jac2, precision: float) -> list[str]:
     """The free keys whose averaged answer's Monte Carlo standard deviation exceeds `precision`
     of their `precision_scale`, from the averaged steps' iterates and fresh-seed gradients
@@ -272,15 +334,12 @@ def imprecise(problem, tail, gradients, jac1, jac2, precision: float) -> list[st
     x = np.asarray(to_physical(problem.free, u[:n]), np.float64)
     slope = transform_jacobian(problem.free, u[:n])
     sd = np.sqrt(np.clip(np.diag(slope @ cov[:n, :n] @ slope.T), 0.0, None))
-    pinned = {b["parameter"] for b in at_bounds(problem.free, as_dict(problem.free, x))}
+    bound = pinned(problem, u)
     out, i = [], 0
     for f in problem.free:
         part = slice(i, i + f.size)
         i += f.size
-        noisy = sd[part] > precision * precision_scale(f.spec, x[part])
-        if not f.shape:  # `at_bounds` labels: `key`, or `key[k]` for a colour's components
-            labels = [f.key] if f.size == 1 else [f"{f.key}[{k}]" for k in range(f.size)]
-            noisy &= np.array([label not in pinned for label in labels])
+        noisy = (sd[part] > precision * precision_scale(f.spec, x[part])) & ~bound[part]
         if np.any(noisy):
             out.append(f.key)
     return out
@@ -544,6 +603,9 @@ class GaussNewton(AbstractSolver):
         # every step's iterate after it and (iterate before, gradient): the result averages the
         # last `average` of the steps taken, `window` tests the last iterates
         history, iterates, pairs, rejected, first = [], [], [], 0, 0
+        # the last step clipped to `max_step` that moved a value by more than `max_step_noise`
+        # of its scale (-1: none)
+        clipped = -1
         model = linear_model(problem, downscale)
         # (image, values, the means of the phase's two series of physical Jacobian renders)
         linear = None
@@ -554,6 +616,7 @@ class GaussNewton(AbstractSolver):
         if resume is not None:
             first = int(resume["step"])  # `u` is the saved one (above)
             history, rejected = list(resume["history"]), int(resume["rejected"])
+            clipped = int(resume.get("clipped", -1))
             iterates = list(np.asarray(resume["tail"]))
             pairs = list(np.asarray(resume.get("tail_gradients", [])))
             if len(resume["leaves"]) == 4:  # the Jacobians in use when the state was offered
@@ -561,6 +624,7 @@ class GaussNewton(AbstractSolver):
                 if "constants" in resume:
                     constants = np.asarray(resume["constants"], np.float32)
         settled_at, relaxed_at, noisy = None, None, []
+        jac1 = jac2 = None  # the last step's Jacobians in the solver's coordinates
         limit = max(steps, options.max_steps or steps) if options.precision else steps
 
         def still_noisy() -> list[str]:
@@ -581,12 +645,26 @@ class GaussNewton(AbstractSolver):
             if window and len(iterates) > window and settled(iterates[-window - 1 :], tol):
                 settled_at, noisy = done, []
                 return True
-            if options.relaxed and done % options.refresh == 0 and done - since >= RELAXED_MIN:
-                # quiet steps (noisy ones hide a trend) and what the phase hands on (its last
-                # half since the raise) without one
+            counted = done - since
+            # before `RELAXED_MIN`: from `RELAXED_MIN_DETERMINED` where the curvature is signal
+            early = counted < RELAXED_MIN
+            if (
+                options.relaxed
+                and done % options.refresh == 0
+                and counted >= (RELAXED_MIN_DETERMINED if early else RELAXED_MIN)
+                and (not early or determined(jac1, jac2))
+            ):
+                # quiet steps (noisy ones hide a trend; a step clipped to `max_step` that moved
+                # a value is not a relaxation's) and what the phase hands on (its last half
+                # since the raise) without one; early, none over all its steps since
                 noise = step_noise(problem, iterates[-options.refresh - 1 :])
                 quiet = bool(noise) and max(noise.values()) <= options.max_step_noise
-                moving = trending(iterates[since + (done - since) // 2 : done], options.eta)
+                quiet = quiet and clipped < done - options.refresh
+                first = since if early else since + counted // 2
+                moving = trending(iterates[first:done], options.eta)
+                if moving is not None:  # a value at its bound moves nothing where it wanders
+                    centre = np.mean(np.asarray(iterates[first:done], np.float64), axis=0)
+                    moving = moving[~pinned(problem, centre)[moving]]
                 if quiet and moving is not None and not moving.size:
                     relaxed_at = done
                     return True
@@ -656,8 +734,14 @@ class GaussNewton(AbstractSolver):
                 value, grad = value_and_grad(jnp.asarray(u), jax_seed(step_seed))
                 value, grad = float(value), np.asarray(grad, np.float64)
             delta = -options.eta * (inverse @ grad)
-            delta *= min(1.0, options.max_step / max(float(np.max(np.abs(delta))), 1e-30))
+            largest = max(float(np.max(np.abs(delta))), 1e-30)
+            if largest > options.max_step:
+                delta *= options.max_step / largest
             new_u = u + delta.astype(np.float32)
+            if largest > options.max_step and options.relaxed and np.all(np.isfinite(new_u)):
+                # a clipped step that moves a value by more than a quiet step's noise
+                if largest_move(problem, u, new_u) > options.max_step_noise:
+                    clipped = i
             pairs.append(np.concatenate([u, grad]).astype(np.float32))
             if np.all(np.isfinite(new_u)) and np.isfinite(value):
                 u = new_u
@@ -682,6 +766,7 @@ class GaussNewton(AbstractSolver):
                         "tail_gradients": pairs,
                         "n_tail_gradients": len(pairs),
                         "rejected": rejected,
+                        "clipped": clipped,
                         "samples": [primal_spp, grad_spp],
                         "level": level,
                         "raised": raised,
