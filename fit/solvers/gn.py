@@ -660,10 +660,10 @@ class GaussNewton(AbstractSolver):
                 noise = step_noise(problem, iterates[-options.refresh - 1 :])
                 quiet = bool(noise) and max(noise.values()) <= options.max_step_noise
                 quiet = quiet and clipped < done - options.refresh
-                first = since if early else since + counted // 2
-                moving = trending(iterates[first:done], options.eta)
+                tested = iterates[since if early else since + counted // 2 : done]
+                moving = trending(tested, options.eta)
                 if moving is not None:  # a value at its bound moves nothing where it wanders
-                    centre = np.mean(np.asarray(iterates[first:done], np.float64), axis=0)
+                    centre = np.mean(np.asarray(tested, np.float64), axis=0)
                     moving = moving[~pinned(problem, centre)[moving]]
                 if quiet and moving is not None and not moving.size:
                     relaxed_at = done

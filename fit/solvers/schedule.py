@@ -131,8 +131,8 @@ class Phase(BaseModel):
 #: value's steps are noisier than 10 % of it (`GNOptions.spp_limit`: a glossy lobe's steps at 16 spp
 #: jumped alpha 0.01 next to its bound). It ends once relaxed (`GNOptions.relaxed`: quiet steps
 #: whose last half has no trend, from 30 steps at its last count, or from 20 where its curvature
-#: is signal and none of its steps has a trend; the Cycles sphere at 20-30 steps, where Adam left
-#: it within its noise); ended once settled over a window (`GNOptions.window`), the
+#: is signal and none of its steps has a trend; the Cycles sphere at 20 steps, where Adam left it
+#: within its noise); ended once settled over a window (`GNOptions.window`), the
 #: slow relaxation toward alpha 0.01-0.02 from a start at 0.2 stopped early (the torus at alpha 0.01
 #: ended +49 to +69 % against +10 % with all 56 steps). Then steps of 64 spp are averaged, their
 #: curvature refreshed every 4 so that the uncertainty takes its Jacobians: 8 steps, and more (up to
