@@ -187,13 +187,21 @@ def step_noise(problem, iterates) -> dict[str, float]:
     b = np.divide(np.sum(before * steps, axis=0), spread, out=np.zeros(n), where=spread > 0)
     residual = steps - b * before
     sd = np.sqrt(np.sum(residual**2, axis=0) / max(len(steps) - 2, 1)) * slope
+    share = sd / _scales(problem, value)
     out, i = {}, 0
     for f in problem.free:
-        part = slice(i, i + f.size)
+        out[f.key] = float(np.max(share[i : i + f.size]))
         i += f.size
-        scale = np.maximum(precision_scale(f.spec, value[part]), 1e-12)
-        out[f.key] = float(np.max(sd[part] / scale))
     return out
+
+
+def _scales(problem, x: np.ndarray) -> np.ndarray:
+    """Every material component's `precision_scale` at the physical values `x` (flat)."""
+    out, i = np.empty(len(x)), 0
+    for f in problem.free:
+        out[i : i + f.size] = precision_scale(f.spec, x[i : i + f.size])
+        i += f.size
+    return np.maximum(out, 1e-12)
 
 
 #: The most a coordinate's curvature is lowered below its plain `J^T J` for the Jacobian's noise.
@@ -238,15 +246,11 @@ def largest_move(problem, before: np.ndarray, after: np.ndarray) -> float:
     as a share of its `precision_scale` at `before` (a value at its bound, where the transform
     is flat, barely moves however far its coordinate goes)."""
     n = problem.n_material
-    x0 = np.asarray(to_physical(problem.free, before[:n].astype(np.float32)), np.float64)
-    x1 = np.asarray(to_physical(problem.free, after[:n].astype(np.float32)), np.float64)
-    out, i = 0.0, 0
-    for f in problem.free:
-        part = slice(i, i + f.size)
-        i += f.size
-        scale = np.maximum(precision_scale(f.spec, x0[part]), 1e-12)
-        out = max(out, float(np.max(np.abs(x1[part] - x0[part]) / scale)))
-    return out
+    x0, x1 = (
+        np.asarray(to_physical(problem.free, u[:n].astype(np.float32)), np.float64)
+        for u in (before, after)
+    )
+    return float(np.max(np.abs(x1 - x0) / _scales(problem, x0), initial=0.0))
 
 
 def _curvature(j1: np.ndarray, j2: np.ndarray) -> np.ndarray:
@@ -334,14 +338,12 @@ def imprecise(problem, tail, gradients, jac1, jac2, precision: float) -> list[st
     x = np.asarray(to_physical(problem.free, u[:n]), np.float64)
     slope = transform_jacobian(problem.free, u[:n])
     sd = np.sqrt(np.clip(np.diag(slope @ cov[:n, :n] @ slope.T), 0.0, None))
-    bound = pinned(problem, u)
+    noisy = (sd > precision * _scales(problem, x)) & ~pinned(problem, u)[:n]
     out, i = [], 0
     for f in problem.free:
-        part = slice(i, i + f.size)
-        i += f.size
-        noisy = (sd[part] > precision * precision_scale(f.spec, x[part])) & ~bound[part]
-        if np.any(noisy):
+        if np.any(noisy[i : i + f.size]):
             out.append(f.key)
+        i += f.size
     return out
 
 

@@ -529,7 +529,7 @@ def test_a_relaxing_phase_whose_steps_are_clipped_has_not_relaxed(problem, monke
 def test_a_value_at_its_bound_does_not_hold_a_relaxing_phase(problem, monkeypatch, red):
     """`relaxed` leaves out of its trend test a value at its bound (`pinned`): its coordinate
     wanders where the transform is flat and moves nothing (the Cycles sphere's sigma at 0 had a
-    trend over 20 steps in its coordinate, from -7 to -12, and held the phase to 30 steps on
+    trend over 20 steps in its coordinate and held the phase to 30 steps on
     fit seed 0). Here the red pigment's coordinate is always taken for trending: with the
     optimum at red 0.1 the phase runs to its limit, with the optimum past the bound 0 (red
     ends at it) it relaxes."""
