@@ -176,24 +176,70 @@ def test_broken_image_is_caught(browser, report: Path, tmp_path: Path):
 
 
 @pytest.mark.parametrize("height, width", [(120, 160), (56, 64), (300, 100), (17, 400), (1, 1)])
-def test_a_views_figure_holds_its_titles_and_colour_bar(tmp_path: Path, monkeypatch, height, width):
-    """The view figure's fixed layout (panels and colour bar placed in inches) keeps every title
-    and colour-bar label inside the figure, for tall, wide, tiny and odd image sizes."""
+def test_a_views_png_holds_photo_render_and_difference(tmp_path: Path, height, width):
+    """A view's PNG is the photo, the fitted render and their difference side by side at the
+    view's own pixels, for tall, wide, tiny and odd sizes: the photo and render in sRGB over the
+    photo's exposure, the difference coloured (no difference: the colour map's centre), pixels
+    the fit does not use grey, white between the panels; tagged as drawn by layerfit."""
+    import matplotlib
+    from matplotlib.image import imread
+
+    from captures.images import srgb_encode
     from fit.output import report
+    from fit.output.figures import drawn_by_layerfit
 
-    drawn = {}
-
-    def keep(fig, path, dpi=110):
-        fig.canvas.draw()
-        drawn["inside"] = fig.get_tightbbox(fig.canvas.get_renderer())
-        drawn["figure"] = fig.bbox_inches
-        return path
-
-    monkeypatch.setattr(report, "save_figure", keep)
     rng = np.random.default_rng(0)
     photo = rng.uniform(0.1, 1.0, (height, width, 3)).astype(np.float32)
-    view = ViewPanel("v", photo, photo * 1.05, np.ones((height, width), np.float32), False, 0.05)
-    report._view_png(view, tmp_path / "v.png")
-    inside, figure = drawn["inside"], drawn["figure"]
-    assert inside.x0 >= -1e-3 and inside.y0 >= -1e-3, (inside, figure)
-    assert inside.x1 <= figure.x1 + 1e-3 and inside.y1 <= figure.y1 + 1e-3, (inside, figure)
+    render = photo.copy()
+    render[: height // 2] *= 1.5  # brighter over the top half: red there
+    weight = np.ones((height, width), np.float32)
+    weight[:, -1] = 0  # the last column is not fitted: grey in the difference
+    view = ViewPanel("v", photo, render, weight, False, 0.05)
+    png = report._view_png(view, tmp_path / "v.png")
+    sheet = imread(png)[..., :3]
+    panel, gap = report._view_columns(width)
+    assert sheet.shape == (height, 3 * panel + 2 * gap, 3)
+    assert drawn_by_layerfit(png)
+    exposure = np.percentile(photo[weight > 0], 99) if (weight > 0).any() else 1.0
+    shown = np.clip(srgb_encode(photo / exposure), 0, 1)
+    np.testing.assert_allclose(sheet[:, :panel], shown, atol=1 / 255 + 1e-6)
+    assert np.all(sheet[:, panel : panel + gap] == 1) and np.all(
+        sheet[:, -panel - gap : -panel] == 1
+    )
+    diff = sheet[:, -panel:]
+    np.testing.assert_allclose(diff[:, -1], report.INVALID_GREY, atol=1 / 255 + 1e-6)
+    if width > 1 and height > 1:
+        centre = np.asarray(matplotlib.colormaps[report.DIFF_CMAP](0.5)[:3])
+        np.testing.assert_allclose(diff[-1, 0], centre, atol=1 / 255 + 1e-6)
+        assert diff[0, 0, 0] > diff[0, 0, 2]  # brighter: red
+
+
+def test_views_titles_sit_over_their_panels(browser, report: Path):
+    """Each view's HTML titles (photo, fitted render, difference) are centred over their panel
+    of the view's PNG as Chromium lays the page out."""
+    from fit.output.report import _view_columns
+
+    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    page.goto(report.resolve().as_uri(), wait_until="load")
+    figures = page.evaluate(
+        """Array.from(document.querySelectorAll('img.view')).map(img => {
+          const box = img.getBoundingClientRect();
+          const spans = Array.from(img.closest('figure').querySelectorAll('.titles span'))
+            .filter(s => s.textContent).map(s => s.getBoundingClientRect());
+          return {left: box.left, width: box.width, natural: img.naturalWidth,
+                  centres: spans.map(s => s.left + s.width / 2)}; })"""
+    )
+    page.close()
+    assert len(figures) == 3
+    for fig in figures:
+        # the panel width whose sheet is this wide
+        panel, gap = next(
+            _view_columns(w)
+            for w in range(1, fig["natural"] + 1)
+            if 3 * w + 2 * _view_columns(w)[1] == fig["natural"]
+        )
+        scale = fig["width"] / fig["natural"]
+        assert len(fig["centres"]) == 3
+        for k, centre in enumerate(fig["centres"]):
+            middle = fig["left"] + scale * (k * (panel + gap) + panel / 2)
+            assert abs(centre - middle) < scale * panel / 10, (k, centre, middle)
