@@ -38,7 +38,25 @@ def main() -> None:
     except SystemExit as done:
         if done.code == 130:
             _exit_interrupted()
-        raise
+        _exit(done.code)
+    _exit(0)
+
+
+def _exit(code) -> NoReturn:
+    """Exit with `code` (SystemExit's: None, a number or a message) once the exit handlers have
+    run and the streams are flushed, without the interpreter's finalisation: every file is
+    written and closed by then, and tearing down Dr.Jit's and JAX's modules took 0.25 s of the
+    sphere's 8 s draft (Xeon-21, 2026-12-07)."""
+    if code is None:
+        code = 0
+    elif not isinstance(code, int):
+        sys.stderr.write(f"{code}\n")
+        code = 1
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(code)
 
 
 def _exit_interrupted() -> NoReturn:
