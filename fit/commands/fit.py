@@ -91,7 +91,7 @@ def run_fit(
             result = run_schedule(
                 problem,
                 start,
-                cfg.phases,
+                prepared.phases,
                 cfg.seed,
                 progress,
                 cfg.uncertainty_spp,
@@ -286,11 +286,9 @@ def _fit_timed(cfg, config, out, resume, holdout, starts, variant, progress, giv
             check_resume(prepared, cfg, out)
     except KeyboardInterrupt:
         raise Stopped("interrupted before the fit began: nothing written") from None
-    phases = cfg.phases if cfg.starts == 1 else ()
+    phases = prepared.phases if cfg.starts == 1 else ()
     tasks = [
-        progress.add_task(
-            f"fit {k + 1}/{len(cfg.phases)}: {p.describe(cfg.downscale)}", total=p.steps
-        )
+        progress.add_task(f"fit {k + 1}/{len(phases)}: {p.describe(cfg.downscale)}", total=p.steps)
         for k, p in enumerate(phases)
     ]
     if cfg.starts > 1:

@@ -30,7 +30,7 @@ from ..material import (
 from ..output import write_text
 from ..solvers import Checkpoint, Problem
 from ..solvers.gn import AUTO_SPLIT
-from ..solvers.schedule import check_saved
+from ..solvers.schedule import Phase, check_saved
 from ..solvers.uncertainty import forward_mode_refusal
 from .run_folder import LOCK
 
@@ -271,7 +271,7 @@ def fit_identity(prepared: Prepared, cfg: FitConfig) -> dict:
         # a capture made again at another size (same path and names): its vector is the same
         # size, its gains' and textures' pixels are not (an internal error mid-resume)
         "view sizes": [list(v.image.shape[:2]) for v in prepared.problem.capture.views],
-        "phases": [f"{p.describe()} x {p.steps} {p.options!r}" for p in cfg.phases],
+        "phases": [f"{p.describe()} x {p.steps} {p.options!r}" for p in prepared.phases],
         "seed": cfg.seed,
         # a checkpoint of another capture with the same view names, another starting material
         # or loss was resumed without a word (its history then mixed two losses)
@@ -295,7 +295,7 @@ def check_resume(prepared: Prepared, cfg: FitConfig, out: Path) -> None:
     if saved is None:
         return
     u = prepared.problem.unconstrained(prepared.start)
-    check_saved(saved, u, len(cfg.phases), checkpoint.path)
+    check_saved(saved, u, len(prepared.phases), checkpoint.path)
     theirs, ours = saved.get("identity"), fit_identity(prepared, cfg)
     if theirs is None:
         return
@@ -338,6 +338,13 @@ class Prepared:
     free: list[Free]
     problem: Problem
     start: dict
+    phases: list[Phase]  # the schedule at the fit's quality for these views (`fit_phases`)
+
+
+def fit_phases(cfg: FitConfig, problem: Problem) -> list[Phase]:
+    """`cfg`'s schedule at its quality preset for `problem`'s fitted views (a draft halves the
+    resolution of views that keep `DRAFT_MIN_SIDE` pixels a side)."""
+    return cfg.phases_for(min(min(v.image.shape[:2]) for v in problem.capture.views))
 
 
 #: The fewest pixels a side of a view at any phase's resolution.
@@ -374,6 +381,7 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
         raise InputError(f"{cfg.path}: fit.free: {err.args[0]}") from None
     _check_emitters(capture, fitted, free, cfg.path)
     problem = Problem(fitted, cfg.material, free, cfg.gains, cfg.loss, cfg.loss_scale)
+    phases = fit_phases(cfg, problem)
     gained = {fitted.views[i].name: problem.gain_channels for i in problem.gain_views}
     check_truth(capture, free, capture.path or cfg.capture, cfg.material, gained)
     check_uvs(capture.scene, cfg.material)
@@ -395,7 +403,7 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
             f"{cfg.path}: fit.{' and fit.'.join(unused)}: for a multi-start fit, and this one "
             "has one start; remove it, or set fit.starts (or --starts) above 1"
         )
-    for k, phase in enumerate(cfg.phases):  # a gains option where no gain is fitted
+    for k, phase in enumerate(phases):  # a gains option where no gain is fitted
         if not cfg.gains and "profile_gains" in phase.options.model_fields_set and trace:
             messages.append(
                 f"{cfg.path}: fit.phases[{k}].profile_gains: no gains are fitted (fit.gains is "
@@ -416,7 +424,7 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
     notes += [f"at fit.quality = {cfg.quality!r}"] if cfg.quality != "default" else []
     given = f" ({', '.join(notes)})" if notes else ""
     largest, sizes = 0, set()
-    for k, phase in enumerate(cfg.phases):  # fail before any work, naming the phase
+    for k, phase in enumerate(phases):  # fail before any work, naming the phase
         if refusal and phase.solver in ("gn", "lm"):
             raise InputError(
                 f"{cfg.path}: fit.phases[{k}].solver = {phase.solver!r}{given}: {refusal}, and "
@@ -429,9 +437,7 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
             raise CaptureError(f"{cfg.path}: fit.phases[{k}].downscale{given}: {err}") from None
         h, w = min(v.image.shape[0] for v in views), min(v.image.shape[1] for v in views)
         if min(h, w) < MIN_PIXELS:
-            if cfg.quality == "draft":  # draft halves the full-resolution phases' resolution
-                fix = 'fit at quality "default" (--quality default), or give larger views'
-            elif not given:
+            if not given:
                 fix = "give a smaller factor"
             else:
                 fix = (
@@ -476,7 +482,7 @@ def prepare(cfg: FitConfig, holdout: int | None = None, trace: bool = True) -> P
                 f"{cfg.path}: fit.{name} = {spp} over {pixels} pixels is more than Mitsuba's "
                 "2^32 samples a render; lower it"
             )
-    return Prepared(capture, held, free, problem, start_values(free))
+    return Prepared(capture, held, free, problem, start_values(free), phases)
 
 
 #: Pixels a step (all fitted views, a phase's resolution) above which a fit is warned: the

@@ -86,7 +86,10 @@ def write_run(
     with timing.timed("report: renders of the fitted views"):
         panels = _panels(cfg, capture, held, problem, result)
     began = time.perf_counter()
-    summary = _summary(cfg, capture, held, start, result, wall, panels, interrupted, free)
+    from .prepare import fit_phases  # it imports this module's lock
+
+    phases = fit_phases(cfg, problem)
+    summary = _summary(cfg, capture, held, start, result, wall, panels, interrupted, free, phases)
     if starts is not None:
         summary["starts"] = starts
     for key, texels in textures.items():
@@ -301,7 +304,7 @@ def _labels(values: dict) -> list[str]:
     return out
 
 
-def _summary(cfg, capture, held, start, result, wall, panels, interrupted, free) -> dict:
+def _summary(cfg, capture, held, start, result, wall, panels, interrupted, free, phases) -> dict:
     truth = capture.truth
     errors, z = {}, {}
     for key, value in result.values.items():
@@ -320,7 +323,7 @@ def _summary(cfg, capture, held, start, result, wall, panels, interrupted, free)
         "interrupted": interrupted,
         "phases": [
             {**p.model_dump(exclude=set(p.model_extra or ())), **p.options.model_dump()}
-            for p in cfg.phases
+            for p in phases
         ],
         "outcomes": [r.as_dict() for r in result.reports],
         "seed": cfg.seed,

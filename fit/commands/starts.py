@@ -75,10 +75,11 @@ def fit_from(
 
     prepare_worker(1, variant, cache)
     began = time.perf_counter()
-    problem = prepare(cfg, holdout, trace=False).problem
+    prepared = prepare(cfg, holdout, trace=False)
+    problem = prepared.problem
     values = problem.values(u)
     start = {f.key: values[f.key] for f in problem.free}
-    result = run_schedule(problem, start, cfg.phases, cfg.seed, None, cfg.uncertainty_spp)
+    result = run_schedule(problem, start, prepared.phases, cfg.seed, None, cfg.uncertainty_spp)
     loss = common_loss(problem, result.u, cfg.starts_spp, cfg.seed + COMMON_SEED_OFFSET)
     return {
         "result": result,

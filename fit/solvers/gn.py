@@ -27,6 +27,14 @@ from .uncertainty import (
     transform_slope,
 )
 
+#: With `relaxed`: the fewest steps a phase tests for drift (since its start or its last raise of
+#: samples).
+RELAXED_MIN = 30
+#: With `relaxed`: the fewest steps where the curvature the steps were taken with is mostly
+#: signal (`determined`) and no value has a trend over all of them (Adam handed on within the
+#: noise: the phase had nothing to relax).
+RELAXED_MIN_DETERMINED = 20
+
 
 class GNOptions(Options):
     eta: float = Field(0.5, gt=0.0, le=1.0)
@@ -75,16 +83,22 @@ class GNOptions(Options):
     has relaxed: its last `refresh` steps are quiet (every value's step noise within
     `max_step_noise`, as `spp_limit` asks, and none clipped to `max_step` while it moved a value
     by more: `largest_move`) and, over its steps since its start or its last raise of samples
-    (`spp_limit`), at least `RELAXED_MIN` of them, no value has a trend over their last half
+    (`spp_limit`), at least `relaxed_min` of them, no value has a trend over their last half
     (`trending`; a value at its bound, `pinned`, moves nothing where its coordinate wanders):
     its result, the mean of its last `average` of them, no longer moves. From
-    `RELAXED_MIN_DETERMINED` steps where the curvature is mostly signal (`determined`) and no
+    `relaxed_min_determined` steps where the curvature is mostly signal (`determined`) and no
     value has a trend over all of them: Adam handed on within the noise. A glossy lobe's alpha
     can sit still for 20 steps before it relaxes: on the recovery sweep's torus at alpha
     0.005-0.02 (fit seed 1) Adam handed on 0.022-0.023 and alpha fell only from step 20-30 on,
     its first Jacobians mostly noise (alpha's `signal_share` 0.45-0.49 at the first refresh,
     0.14-0.34 at the second: its curvature swollen, `_curvature`, its steps too short until
     later refreshes average that away)."""
+    relaxed_min: PositiveInt = RELAXED_MIN
+    """With `relaxed`: the fewest steps it tests for a trend over their last half (a draft
+    halves it, as it halves the steps)."""
+    relaxed_min_determined: PositiveInt = RELAXED_MIN_DETERMINED
+    """With `relaxed`: the fewest steps where the curvature is mostly signal (`determined`),
+    at most `relaxed_min`."""
     tolerance: PositiveFloat = 1.0
     """With `window`: the net move that counts as settled, in units of what noise alone gives
     (`settled`; smaller: stricter)."""
@@ -208,13 +222,6 @@ def _scales(problem, x: np.ndarray) -> np.ndarray:
 MAX_NOISE_SHARE = 15 / 16
 #: How many standard deviations of the two Jacobians' cross product `_curvature` keeps above it.
 CAUTION = 1.0
-#: With `relaxed`: the fewest steps a phase tests for drift (since its start or its last raise of
-#: samples).
-RELAXED_MIN = 30
-#: With `relaxed`: the fewest steps where the curvature the steps were taken with is mostly
-#: signal (`determined`) and no value has a trend over all of them (Adam handed on within the
-#: noise: the phase had nothing to relax).
-RELAXED_MIN_DETERMINED = 20
 #: The share of a coordinate's `J^T J` that is signal, not its Jacobians' noise, from which it
 #: counts as `determined`.
 DETERMINED_SHARE = 0.5
@@ -648,12 +655,12 @@ class GaussNewton(AbstractSolver):
                 settled_at, noisy = done, []
                 return True
             counted = done - since
-            # before `RELAXED_MIN`: from `RELAXED_MIN_DETERMINED` where the curvature is signal
-            early = counted < RELAXED_MIN
+            # before `relaxed_min`: from `relaxed_min_determined` where the curvature is signal
+            early = counted < options.relaxed_min
             if (
                 options.relaxed
                 and done % options.refresh == 0
-                and counted >= (RELAXED_MIN_DETERMINED if early else RELAXED_MIN)
+                and counted >= (options.relaxed_min_determined if early else options.relaxed_min)
                 and (not early or determined(jac1, jac2))
             ):
                 # quiet steps (noisy ones hide a trend; a step clipped to `max_step` that moved

@@ -96,6 +96,12 @@ class Phase(BaseModel):
                     f"needs the image at the reverse pass's spp = {self.spp}; remove primal_spp "
                     f"= {primal!r}",
                 )
+        fewest = getattr(self._options, "relaxed_min_determined", None)
+        if fewest is not None and fewest > self._options.relaxed_min:
+            raise FieldError(
+                "relaxed_min_determined",
+                f"= {fewest} is above relaxed_min = {self._options.relaxed_min}; lower it",
+            )
         most = getattr(self._options, "spp_limit", None)
         if most is not None and most <= self.spp:
             raise FieldError(
@@ -191,34 +197,46 @@ TEXTURE_SCHEDULE = (
 
 
 #: Quality presets (`fit.quality`, `layerfit fit --quality`), each a change of the schedule (the
-#: default one or a config's own phases): `draft` halves every phase's steps and step limits
-#: (`max_steps`), renders the full-resolution phases at half resolution and doubles a precise
-#: phase's tolerance (`precision`: at half resolution the Cycles sphere's averaged phase took 8-16
-#: steps to reach 1.5 %, 4-12 to reach 3 %); `best` doubles every phase's steps and limits
-#: (`QUALITIES`). Their time and error: BENCHMARKS, "Quality presets".
+#: default one or a config's own phases): `draft` halves every phase's steps, its step limits
+#: (`max_steps`) and a relaxing phase's fewest steps (`relaxed_min`, `relaxed_min_determined`),
+#: renders the full-resolution phases at half resolution where the views keep
+#: `DRAFT_MIN_SIDE` pixels a side, and averages until `DRAFT_PRECISION`; `best` doubles every
+#: phase's steps and limits (`QUALITIES`). Their time and error: BENCHMARKS, "Quality presets".
+
+#: A draft's precise phase averages until the Monte Carlo sd is within this share of every
+#: value (`GNOptions.precision`, where the phase asks less), two sd inside the draft's 10 % on
+#: alpha.
+DRAFT_PRECISION = 0.05
+#: The fewest pixels a side a draft leaves a view when it halves the resolution: below, it keeps
+#: the phase's own. The cup's draft at 32x28 (fit seeds 0-2) ended alpha +12, -22 and +5 %, at
+#: 64x56 -8, +5 and +4 %; the Cycles sphere's at 80x60 within 1.1 % (BENCHMARKS, "Quality
+#: presets").
+DRAFT_MIN_SIDE = 48
 
 
-#: The most `draft` raises a precise phase's tolerance to (`GNOptions.precision` is below 1).
-DRAFT_PRECISION_MOST = 0.5
-
-
-def at_quality(phases, quality: str = "default") -> tuple[Phase, ...]:
-    """`phases` at a quality preset (`QUALITIES`)."""
+def at_quality(phases, quality: str = "default", side: int | None = None) -> tuple[Phase, ...]:
+    """`phases` at a quality preset (`QUALITIES`); `side`: the fitted views' smallest side at
+    full resolution (unknown: a draft halves every full-resolution phase)."""
     if quality not in QUALITIES:
         raise ValueError(f"unknown quality {quality!r}; choose one of {', '.join(QUALITIES)}")
     if quality == "default":
         return tuple(phases)
+    halve = side is None or side // 2 >= DRAFT_MIN_SIDE
     out = []
     for phase in phases:
         fields = phase.model_dump()  # its options too (extra fields), validated again below
         limit = fields.get("max_steps")
         if quality == "draft":
             fields["steps"] = max(1, -(-phase.steps // 2))
-            fields["downscale"] = 2 if phase.downscale == 1 else phase.downscale
+            if halve and phase.downscale == 1:
+                fields["downscale"] = 2
             if limit:
                 fields["max_steps"] = max(1, -(-limit // 2))
             if fields.get("precision"):
-                fields["precision"] = min(2 * fields["precision"], DRAFT_PRECISION_MOST)
+                fields["precision"] = max(fields["precision"], DRAFT_PRECISION)
+            if getattr(phase.options, "relaxed", False):
+                for key in ("relaxed_min", "relaxed_min_determined"):
+                    fields[key] = -(-getattr(phase.options, key) // 2)
         else:
             fields["steps"] = 2 * phase.steps
             if limit:

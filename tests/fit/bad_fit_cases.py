@@ -153,6 +153,11 @@ FIT_CASES: list[Case] = [
         ("fit.toml", "fit.phases[0].primal_spp:", "1048576"),
     ),
     (
+        "fit-phase-relaxed-minima-crossed",
+        fit_cfg('solver = "adam"\n', 'solver = "gn"\nrelaxed = true\nrelaxed_min = 10\n'),
+        ("fit.toml", "fit.phases[0].relaxed_min_determined", "above relaxed_min = 10"),
+    ),
+    (
         "fit-phase-spp-limit-below-spp",
         fit_cfg('solver = "adam"\n', 'solver = "gn"\nspp_limit = 1\n'),
         ("fit.toml", "fit.phases[0].spp_limit", "does not raise spp = 1"),

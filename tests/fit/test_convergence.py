@@ -15,7 +15,7 @@ from fit import timing
 from fit.solvers import DEFAULT_SCHEDULE, Phase
 from fit.solvers.base import Outcome
 from fit.solvers.gn import _averaged, burn_in, settled
-from fit.solvers.schedule import DRAFT_PRECISION_MOST, QUALITIES, at_quality
+from fit.solvers.schedule import DRAFT_MIN_SIDE, DRAFT_PRECISION, QUALITIES, at_quality
 
 
 def _wandering(rng, coordinates: int, window: int, drift: float = 0.0) -> np.ndarray:
@@ -147,12 +147,14 @@ def test_an_averaged_phase_leaves_out_its_relaxation(problem, monkeypatch, burn_
 
 
 def test_quality_presets_change_every_phase():
-    """draft: half the steps and step limits (rounded up), the full-resolution phases at half
-    resolution, twice a precise phase's tolerance (at most `DRAFT_PRECISION_MOST`); best: twice
-    the steps and limits; default: the phases as they are; their other options kept."""
+    """draft: half the steps, step limits and a relaxing phase's fewest steps (rounded up), the
+    full-resolution phases at half resolution, a precise phase averaged to `DRAFT_PRECISION` at
+    least; best: twice the steps and limits; default: the phases as they are; their other
+    options kept."""
     assert at_quality(DEFAULT_SCHEDULE) == DEFAULT_SCHEDULE
     draft = at_quality(DEFAULT_SCHEDULE, "draft")
     best = at_quality(DEFAULT_SCHEDULE, "best")
+    halved = {"max_steps", "precision", "relaxed_min", "relaxed_min_determined"}
     for phase, d, b in zip(DEFAULT_SCHEDULE, draft, best, strict=True):
         assert d.steps == -(-phase.steps // 2) and b.steps == 2 * phase.steps
         assert d.downscale == (2 if phase.downscale == 1 else phase.downscale)
@@ -161,20 +163,54 @@ def test_quality_presets_change_every_phase():
         if limit:
             assert d.options.max_steps == -(-limit // 2) and b.options.max_steps == 2 * limit
         precision = getattr(phase.options, "precision", None)
-        if precision is not None:
-            assert d.options.precision == 2 * precision and b.options.precision == precision
-        same = phase.options.model_dump(exclude={"max_steps", "precision"})
+        if precision:
+            assert d.options.precision == max(precision, DRAFT_PRECISION)
+            assert b.options.precision == precision
+        if getattr(phase.options, "relaxed", False):
+            assert (d.options.relaxed_min, d.options.relaxed_min_determined) == (15, 10)
+            assert (b.options.relaxed_min, b.options.relaxed_min_determined) == (30, 20)
+        same = phase.options.model_dump(exclude=halved)
         for changed in (d, b):
-            assert changed.options.model_dump(exclude={"max_steps", "precision"}) == same
+            assert changed.options.model_dump(exclude=halved) == same
     assert any(getattr(p.options, "max_steps", None) for p in DEFAULT_SCHEDULE)  # checked above
     assert any(getattr(p.options, "precision", 0) for p in DEFAULT_SCHEDULE)
+    assert any(getattr(p.options, "relaxed", False) for p in DEFAULT_SCHEDULE)
     loose = Phase(solver="gn", steps=8, spp=4, precision=0.4, max_steps=16)
-    assert at_quality((loose,), "draft")[0].options.precision == DRAFT_PRECISION_MOST
+    assert at_quality((loose,), "draft")[0].options.precision == 0.4  # it asks less already
     odd = (Phase(solver="adam", steps=1, spp=4, downscale=3, lr=0.2),)
     assert at_quality(odd, "draft")[0].steps == 1 and at_quality(odd, "draft")[0].downscale == 3
     with pytest.raises(ValueError, match="choose one of draft, default, best"):
         at_quality(DEFAULT_SCHEDULE, "fast")
     assert QUALITIES == ("draft", "default", "best")
+
+
+@pytest.mark.parametrize(
+    "side, halved", [(None, True), (2 * DRAFT_MIN_SIDE, True), (2 * DRAFT_MIN_SIDE - 1, False)]
+)
+def test_draft_halves_resolution_where_views_keep_enough_pixels(side, halved):
+    """A draft renders a full-resolution phase at half resolution only where the views keep
+    `DRAFT_MIN_SIDE` pixels a side (the views' size unknown: it halves); its steps are halved
+    either way, and a phase at its own lower resolution keeps it."""
+    phases = (*DEFAULT_SCHEDULE, Phase(solver="adam", steps=4, spp=4, downscale=3, lr=0.1))
+    draft = at_quality(phases, "draft", side)
+    for phase, d in zip(phases, draft, strict=True):
+        expected = 2 if phase.downscale == 1 and halved else phase.downscale
+        assert d.downscale == expected and d.steps == -(-phase.steps // 2)
+    assert at_quality(phases, "best", side) == at_quality(phases, "best")
+
+
+def test_relaxed_minima_are_options_and_checked():
+    """A relaxing phase's fewest steps are options (30 and 20 unless given); the determined one
+    above the other is refused, naming it and the fix."""
+    from fit.solvers.gn import RELAXED_MIN, RELAXED_MIN_DETERMINED
+
+    phase = Phase(solver="gn", steps=56, spp=16, relaxed=True)
+    assert (phase.options.relaxed_min, phase.options.relaxed_min_determined) == (
+        RELAXED_MIN,
+        RELAXED_MIN_DETERMINED,
+    )
+    with pytest.raises(Exception, match="= 20 is above relaxed_min = 10; lower it"):
+        Phase(solver="gn", steps=56, spp=16, relaxed=True, relaxed_min=10)
 
 
 def test_fit_quality_applies_to_a_configs_own_phases(tmp_path, shared_data):
@@ -227,7 +263,8 @@ def test_the_summary_times_the_fit_part_by_part(tmp_path):
     timings = json.loads((out / "summary.json").read_text())["timings_s"]
     phases = summary["outcomes"]
     assert [(o["solver"], o["steps"]) for o in phases] == [("adam", 2), ("gn", 2)]
-    assert [p["downscale"] for p in summary["phases"]] == [2, 2]
+    # 32x24 views: half resolution would leave 12 pixels a side, under `DRAFT_MIN_SIDE`
+    assert [p["downscale"] for p in summary["phases"]] == [1, 1]
     expected = ["start Mitsuba, Dr.Jit and the plugins", "read the capture, build the problem"]
     for k, o in enumerate(phases):
         expected += [f"phase {k + 1} ({o['solver']}): {p}" for p in ("first step", "other steps")]
@@ -358,23 +395,20 @@ def test_quality_table_compares_whole_commands_with_the_loop(tmp_path, monkeypat
     assert len(ran) == 22  # all read back
 
 
-def test_draft_on_views_too_small_to_halve_names_the_quality(tmp_path):
-    """Views that half resolution would take under the smallest side are refused before any
-    render, naming the phase, the quality and the fix; no run folder is left behind."""
+def test_draft_keeps_the_resolution_of_small_views(tmp_path):
+    """A draft of views too small to halve keeps their resolution (and halves the steps); its
+    summary lists the phases it ran, and its checkpoint identity matches them."""
     from test_fit_cli import CONFIG, small_capture
 
     from fit.commands.fit import fit
 
     small_capture(tmp_path / "cap", views=1, spp=16, size=(8, 6))
     (tmp_path / "fit.toml").write_text(
-        CONFIG + '[[fit.phases]]\nsolver = "adam"\nsteps = 2\nspp = 4\nlr = 0.1\n'
+        CONFIG + '[[fit.phases]]\nsolver = "adam"\nsteps = 4\nspp = 4\nlr = 0.1\n'
     )
-    with pytest.raises(InputError) as err:
-        fit(tmp_path / "fit.toml", tmp_path / "run", quality="draft")
-    message = str(err.value)
-    assert "fit.phases[0].downscale = 2 (at fit.quality = 'draft')" in message
-    assert "leaves a 4x3 view" in message and "--quality default" in message
-    assert not (tmp_path / "run").exists()
+    summary, _ = fit(tmp_path / "fit.toml", tmp_path / "run", quality="draft")
+    assert [(p["downscale"], p["steps"]) for p in summary["phases"]] == [(1, 2)]
+    assert [o["steps"] for o in summary["outcomes"]] == [2]
 
 
 def _noisy_linear(problem, monkeypatch, optimum, noise: float, calls: list):
