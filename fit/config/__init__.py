@@ -23,8 +23,9 @@ loss = "l2"               # l2 | huber | cauchy (robust: biased under Monte Carl
 loss_scale = 0.05         # robust losses: differences beyond this count less (default: 0.1 x mean)
 uncertainty_spp = 64      # the final Jacobian's samples per pixel
 downscale = 1             # area-average the photos before anything (DiLiGenT folders, manifests)
-quality = "default"       # draft | default | best: half the steps at half resolution, or twice
-                          # the steps (of the default schedule or the phases below)
+quality = "default"       # draft | default | best: half the steps at half resolution (views
+                          # keeping 48 pixels a side), or twice the steps (of the default
+                          # schedule or the phases below)
 starts = 1                # multi-start: this many starts on Ray workers, the best kept (fit/batch)
 start_spread = 1.5        # the other starts' spread around this one (unconstrained units)
 starts_spp = 256          # spp of the common loss that picks the best start
