@@ -271,11 +271,11 @@ def uncertainty(
     `extra_variance` (per solver coordinate, from the iterates' scatter: `Result.tail_variance`).
 
     With `linearisation` (`Result.linearisation`: a `gn` phase's two series of Jacobian
-    renders at this resolution, each the mean of its refreshes) holding at least `spp / 2`
-    samples a series, those are the two Jacobians, taken to `u` through their linear images
-    (the phase's iterates and `u` differ by its Monte Carlo noise), and nothing is rendered
-    unless a direction is undetermined: on the Cycles sphere the default's last phase renders
-    as many samples as the uncertainty did (3.5 s of a 28 s command).
+    renders at this resolution, each the mean of its refreshes) those are the two Jacobians,
+    taken to `u` through their linear images (the phase's iterates and `u` differ by its Monte
+    Carlo noise), each series topped up to `spp / 2` samples by a render of the rest: on the
+    Cycles sphere the default's last phase renders as many samples as the uncertainty did (3.5
+    s of a 28 s command), and the draft's, of 4 steps, half of them.
     `stop()` is asked before each render; True (a Ctrl-C) raises `KeyboardInterrupt` there.
 
     With `trade` (`u`'s coordinates are the scalars of a fit whose textures are held: `trade(J1,
@@ -298,13 +298,24 @@ def uncertainty(
             raise KeyboardInterrupt
         return finite_rows(*linearised(problem, u, spp_k, seed_k, downscale))
 
-    if linearisation is not None and linearisation[-1] >= half:
-        # a `gn` phase's two series of Jacobian renders at this resolution, each of at least
-        # `half` samples (the mean of its refreshes, linear in the values: taken to `u`)
-        image1, image2, j1, j2, x0, _ = linearisation
+    if linearisation is not None:
+        # a `gn` phase's two series of Jacobian renders at this resolution (the mean of its
+        # refreshes, linear in the values: taken to `u`), each topped up to `half` samples
+        image1, image2, j1, j2, x0, held = linearisation
         model = linear_model(problem, downscale)
-        r1, jac1 = finite_rows(*(np.asarray(a, np.float64) for a in model(u, image1, j1, x0)))
-        r2, jac2 = finite_rows(*(np.asarray(a, np.float64) for a in model(u, image2, j2, x0)))
+
+        def series(image, jac_x, seed_k: int):
+            r, jac = (np.asarray(a, np.float64) for a in model(u, image, jac_x, x0))
+            if held >= half:
+                return finite_rows(r, jac)
+            if stop is not None and stop():
+                raise KeyboardInterrupt
+            r_more, jac_more = linearised(problem, u, half - held, seed_k, downscale)
+            share = held / half  # each sample counts once: the mean of all of them
+            return finite_rows(r + (1 - share) * (r_more - r), jac + (1 - share) * (jac_more - jac))
+
+        r1, jac1 = series(image1, j1, seed)
+        r2, jac2 = series(image2, j2, seed + CROSS_SEED_OFFSET)
     else:
         r1, jac1 = render(half, seed)
         r2, jac2 = render(half, seed + CROSS_SEED_OFFSET)

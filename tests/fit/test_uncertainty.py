@@ -168,3 +168,48 @@ def test_a_value_pinned_at_its_bound_is_undetermined_not_certain(problem):
     # ("uncorrelated", as the report's heat map drew them); the pigment's among themselves known
     off = ~np.eye(5, dtype=bool)
     assert np.all(np.isnan(corr[3:5][off[3:5]])) and np.all(np.isfinite(corr[:3, :3]))
+
+
+def test_a_phases_jacobians_are_topped_up_to_the_uncertaintys_samples(problem, monkeypatch):
+    """The last `gn` phase's two series of Jacobians (`Result.linearisation`) stand for the
+    uncertainty's where they hold its samples, nothing rendered; where they hold fewer, each
+    series gets one render of the rest, and the curvature is taken from the mean of all the
+    samples (the series weighted by what they hold)."""
+    import importlib
+
+    from fit.material import to_physical
+
+    module = importlib.import_module("fit.solvers.uncertainty")  # the package exports its function
+    real, crossed = module.linearised, module.cross_product
+    calls, seen, crosses = [], [], []
+
+    def counted(problem, u, spp, seed, downscale=1):
+        calls.append(spp)
+        out = real(problem, u, spp, seed, downscale)
+        seen.append(out)
+        return out
+
+    monkeypatch.setattr(module, "linearised", counted)
+    monkeypatch.setattr(
+        module, "cross_product", lambda a, b, *w: crosses.append((a, b)) or crossed(a, b, *w)
+    )
+    u = problem.unconstrained(TRUTH)
+    x0 = np.asarray(to_physical(problem.free, u[: problem.n_material], jnp))
+    renderer = problem.renderer(1)
+    (i1, j1), (i2, j2) = (renderer.jacobian(x0, seed, 16) for seed in (11, 12))
+    model = module.linear_model(problem)
+    mine = [
+        tuple(np.asarray(a, np.float64) for a in model(u, i, j, x0))
+        for i, j in ((i1, j1), (i2, j2))
+    ]
+
+    std, _, _ = uncertainty(problem, u, spp=32, seed=5, linearisation=(i1, i2, j1, j2, x0, 16))
+    assert calls == [] and np.all(np.isfinite(std["glaze.roughness"]))
+    np.testing.assert_allclose(crosses[0][0], module.finite_rows(*mine[0])[1])
+
+    crosses.clear()
+    std, _, _ = uncertainty(problem, u, spp=64, seed=5, linearisation=(i1, i2, j1, j2, x0, 16))
+    assert calls == [16, 16]
+    (_, more1), (_, more2), (jac1, jac2) = seen[0], seen[1], crosses[0]
+    np.testing.assert_allclose(jac1, module.finite_rows(mine[0][0], (mine[0][1] + more1) / 2)[1])
+    np.testing.assert_allclose(jac2, module.finite_rows(mine[1][0], (mine[1][1] + more2) / 2)[1])
