@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -164,3 +166,22 @@ def test_bench_tables_name_the_cpu_family_and_vector_unit():
     assert machine(intel).startswith("Intel Xeon (family 6, model 85, AVX2), ")
     assert machine("\nmodel name\t: Bare CPU\n").startswith("Bare CPU, ")
     assert " cores, " in machine("") and "mitsuba " in machine("")
+
+
+@pytest.mark.parametrize(
+    "code, status, said",
+    [(None, 0, ""), (0, 0, ""), (3, 3, ""), ("stopped: why", 1, "stopped: why\n")],
+)
+def test_the_entry_exits_after_its_handlers_with_its_status(code, status, said):
+    """`layerfit` ends without the interpreter's teardown (`fit.entry._exit`): the exit handlers
+    run first, what was printed is flushed, a numeric status is kept, none is 0, and a message
+    is printed with status 1 (as Python's own exit does)."""
+    script = (
+        "import atexit, sys; from fit.entry import _exit; "
+        "atexit.register(lambda: print(' handled', end='')); "
+        f"print('written', end=''); sys.stderr.write('e'); _exit({code!r})"
+    )
+    command = [sys.executable, "-c", script]
+    done = subprocess.run(command, check=False, capture_output=True, text=True)
+    assert done.returncode == status
+    assert done.stdout == "written handled" and done.stderr == "e" + said
