@@ -101,8 +101,8 @@ def _diff_colours(diff: np.ndarray) -> np.ndarray:
 
 def _view_png(view: ViewPanel, path: Path) -> Path:
     """Photo | fitted render | (render - photo) / exposure side by side, each at the view's own
-    pixels (the page scales them; its captions and colour bar are HTML: matplotlib's layout took
-    0.16 s a view), invalid pixels grey; tagged `Software = layerfit` like every figure."""
+    pixels (the page scales them and draws their titles and colour bar: drawn by matplotlib, a
+    view took 0.16 s), invalid pixels grey; tagged `Software = layerfit` like every figure."""
     from matplotlib.image import imsave
 
     valid = np.asarray(view.weight) > 0
