@@ -45,8 +45,8 @@ def main() -> None:
 def _exit(code) -> NoReturn:
     """Exit with `code` (SystemExit's: None, a number or a message) once the exit handlers have
     run and the streams are flushed, without the interpreter's finalisation: every file is
-    written and closed by then, and tearing down Dr.Jit's and JAX's modules took 0.25 s of the
-    sphere's 8 s draft (Xeon-21, 2026-12-07)."""
+    written and closed by then, and the interpreter's teardown (Dr.Jit's and JAX's modules among
+    what it frees) took 0.25 s of the sphere's 8 s draft (Xeon-21, 2026-12-07)."""
     if code is None:
         code = 0
     elif not isinstance(code, int):

@@ -167,7 +167,7 @@ def _loss_png(summary: dict, path: Path) -> Path | None:
     ends = [int(e) for e in summary.get("phase_ends") or []] or [history.size]
     phases = summary.get("phases") or []
     plt = pyplot()
-    # fixed margins (a constrained layout took 0.13 s of the plot's 0.31 s)
+    # fixed margins (with a constrained layout the plot took 0.31 s, without 0.20 s)
     fig, ax = plt.subplots(figsize=(7, 3.4))
     fig.subplots_adjust(left=0.11, right=0.98, bottom=0.14, top=0.91)
     begin = 0

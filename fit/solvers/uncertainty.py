@@ -292,11 +292,15 @@ def uncertainty(
     u = jnp.asarray(u, jnp.float32)
     half = max(spp // 2, 1)
 
-    def render(spp_k: int, seed_k: int):
-        """One Jacobian render; a stop asked for (Ctrl-C) raises between two of them."""
+    def rendered(spp_k: int, seed_k: int):
+        """One Jacobian render, every row; a stop asked for (Ctrl-C) raises between two."""
         if stop is not None and stop():
             raise KeyboardInterrupt
-        return finite_rows(*linearised(problem, u, spp_k, seed_k, downscale))
+        return linearised(problem, u, spp_k, seed_k, downscale)
+
+    def render(spp_k: int, seed_k: int):
+        """One Jacobian render, its finite rows."""
+        return finite_rows(*rendered(spp_k, seed_k))
 
     if linearisation is not None:
         # a `gn` phase's two series of Jacobian renders at this resolution (the mean of its
@@ -308,9 +312,7 @@ def uncertainty(
             r, jac = (np.asarray(a, np.float64) for a in model(u, image, jac_x, x0))
             if held >= half:
                 return finite_rows(r, jac)
-            if stop is not None and stop():
-                raise KeyboardInterrupt
-            r_more, jac_more = linearised(problem, u, half - held, seed_k, downscale)
+            r_more, jac_more = rendered(half - held, seed_k)
             share = held / half  # each sample counts once: the mean of all of them
             return finite_rows(r + (1 - share) * (r_more - r), jac + (1 - share) * (jac_more - jac))
 
