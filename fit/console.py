@@ -107,8 +107,10 @@ def fit_results(config: Path, out: Path, summary: dict) -> None:
             "components for a Jacobian"
         )
     for key, texture in (summary.get("textures") or {}).items():
+        median = texture["median_sd"]
+        said = "none seen" if median is None else f"median sd {median:.4f} where seen"
         results.print(
-            f"{key}: texels' median sd {texture['median_sd']:.4f} ({texture['sd_file']})",
+            f"{key}: texels' {said} ({texture['sd_file']})",
             highlight=False,
             markup=False,
         )

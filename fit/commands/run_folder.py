@@ -348,7 +348,8 @@ def _summary(cfg, capture, held, start, result, wall, panels, interrupted, free,
             key: {
                 "file": f"{key}.exr",
                 "sd_file": f"{key}.sd.exr",
-                "median_sd": float(np.median(sd)),
+                # over the texels the photographs say something of (below a uniform value's sd)
+                "median_sd": _median_sd(sd, next(f for f in free if f.key == key)),
                 "smoothness": (result.texture_weight or {}).get(key),
                 "seen": (result.texture_seen or {}).get(key),
             }
@@ -360,6 +361,14 @@ def _summary(cfg, capture, held, start, result, wall, panels, interrupted, free,
         "wall_time_s": wall,
         "software": software_versions(),
     }
+
+
+def _median_sd(sd: np.ndarray, f) -> float | None:
+    """The median texel sd of free texture `f` over the texels whose sd is below that of a value
+    uniform over its bounds (what a texel no pixel sees is given); None where there are none."""
+    cap = (float(np.max(f.spec.upper)) - float(np.min(f.spec.lower))) / np.sqrt(12.0)
+    below = np.asarray(sd)[np.asarray(sd) < cap * (1 - 1e-4)]
+    return float(np.median(below)) if below.size else None
 
 
 def _finite(value):

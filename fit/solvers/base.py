@@ -70,12 +70,13 @@ class Result:
     #: step (solvers whose steps follow the loss's own fresh-seed gradient: `gn`); from them the
     #: uncertainty estimates the averaged answer's Monte Carlo error (see `uncertainty`).
     tail_gradients: tuple[np.ndarray, np.ndarray] | None = None
-    #: Free textures after their smoothing (`fit.solvers.textures`): each texel's sd (the
-    #: texture's shape), the prior weight chosen and the share of texels the photos see.
     #: A `gn` phase's mean linear images and Jacobians (`(image1, image2, jac1, jac2, x, spp)`:
     #: two independent series, each the mean of its refreshes' `spp` samples, linear in the
     #: physical values `x`), the uncertainty's Jacobian renders when they hold as many samples.
     linearisation: tuple | None = None
+    #: Free textures (`fit.solvers.textures`): each texel's sd (the texture's shape; a colour's
+    #: after its smoothing, a mask's its own term), a colour's prior weight chosen, and the
+    #: share of each texture's texels the photos see.
     texture_std: dict | None = None
     texture_weight: dict | None = None
     texture_seen: dict | None = None

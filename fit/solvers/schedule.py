@@ -28,7 +28,15 @@ from .base import Options, PhaseReport, Result
 from .checkpoint import Checkpoint
 from .problem import Problem
 from .registry import SOLVERS
-from .textures import Smoothed, smooth_textures, texel_trade
+from .textures import (
+    PROBE_SEED_OFFSET,
+    Smoothed,
+    curvature,
+    residual_variance,
+    smooth_textures,
+    texel_sd,
+    texel_trade,
+)
 from .uncertainty import forward_mode_refusal, uncertainty
 
 
@@ -283,20 +291,52 @@ def default_schedule(
     )
 
 
-def _trade(problem: Problem, u, phases, seed: int, smoothed: Smoothed | None, stop=None):
+class _Trade:
     """`trade(J1, J2)` for the uncertainty of the scalars with `problem`'s textures held at `u`
     (`fit.solvers.textures.texel_trade`, at `TEXTURE_SPP` and the last phase's resolution; with
     the colour smoother's prior weights and, at full resolution, its curvature; `stop` as the
-    uncertainty's)."""
-    downscale = phases[-1].downscale
-    weights = smoothed.weight if smoothed is not None else None
-    h = smoothed.curvature if smoothed is not None and downscale == 1 else None
-    seed = seed + len(phases)  # the uncertainty's (the trade's renders offset their own)
+    uncertainty's). It keeps the curvature's diagonal it used (`h`, None before a call), which
+    gives the masks' texels their sd."""
 
-    def trade(jac1, jac2):
-        return texel_trade(problem, u, (jac1, jac2), TEXTURE_SPP, seed, downscale, weights, h, stop)
+    def __init__(self, problem: Problem, u, phases, seed: int, smoothed: Smoothed | None, stop):
+        self.problem, self.u, self.stop = problem, u, stop
+        self.downscale = phases[-1].downscale
+        self.weights = smoothed.weight if smoothed is not None else None
+        full = smoothed is not None and self.downscale == 1
+        self.h = smoothed.curvature if full else None
+        self.seed = seed + len(phases)  # the uncertainty's (the trade's renders offset their own)
 
-    return trade
+    def __call__(self, jac1, jac2):
+        if self.h is None:
+            self.h = curvature(self.problem, self.u, TEXTURE_SPP, self.seed, self.downscale)
+        return texel_trade(
+            self.problem,
+            self.u,
+            (jac1, jac2),
+            TEXTURE_SPP,
+            self.seed,
+            self.downscale,
+            self.weights,
+            self.h,
+            self.stop,
+        )
+
+
+def _masks_sd(problem: Problem, u, result: Result, phases, seed: int, h: np.ndarray | None):
+    """Each texel's sd of the free textures no smoothing gave one (a mask's; `texel_sd`), at the
+    last phase's resolution: from the curvature's diagonal `h` where the trade or the smoother
+    has it there, and the residual's variance of one render, into `result`'s `texture_std` and
+    `texture_seen`."""
+    keys = {f.key for f in problem.free if f.shape} - set(result.texture_std or {})
+    if not keys:
+        return
+    downscale, seed = phases[-1].downscale, seed + len(phases)
+    if h is None:
+        h = curvature(problem, u, TEXTURE_SPP, seed, downscale)
+    sigma2 = residual_variance(problem, u, TEXTURE_SPP, seed + PROBE_SEED_OFFSET - 1, downscale)
+    std, seen = texel_sd(problem, u, h, sigma2, keys)
+    result.texture_std = {**(result.texture_std or {}), **std}
+    result.texture_seen = {**(result.texture_seen or {}), **seen}
 
 
 def _same(u):
@@ -515,6 +555,7 @@ def run_schedule(
     if problem.textures and phases[-1].solver == "adam":
         result.tail_variance = result.tail_gradients = None  # of all coordinates, not the held
     stop = None if checkpoint is None else (lambda: checkpoint.stop)
+    trade = None if last is problem else _Trade(problem, u, phases, seed, smoothed, stop)
     if forward_mode_refusal(last) is None:  # else no sd: std stays None
         with timing.timed("uncertainty"):
             result.std, result.correlation, result.poorly_determined = uncertainty(
@@ -531,10 +572,16 @@ def run_schedule(
                 # the last phase's Jacobians, where it solved this problem (not textures held)
                 linearisation=result.linearisation if last is problem else None,
                 # with textures held, what refitting their texels would take from the scalars
-                trade=None if last is problem else _trade(problem, u, phases, seed, smoothed, stop),
+                trade=trade,
                 # a Ctrl-C stops it between two renders (its checkpoint: the last phase's end);
                 # once it is done, the fit is whole and is written
                 stop=stop,
             )
+    if problem.textures:
+        with timing.timed("texture sd"):
+            h = trade.h if trade is not None else None
+            if h is None and smoothed is not None and phases[-1].downscale == 1:
+                h = smoothed.curvature
+            _masks_sd(problem, u, result, phases, seed, h)
     result.linearisation = None  # the uncertainty's only: not carried on (a start's Ray result)
     return result

@@ -30,6 +30,10 @@ sd of a value uniform over its bounds (`(upper - lower) / sqrt(12)`: what a texe
 is known to be). The texels' coupling through the bilinear lookup and through the scalars is
 not in it.
 
+A mask's texels are not smoothed (`smooth_textures`); their sd is the texel's own term,
+`sigma / sqrt(h_i)` with the same cap (`texel_sd`), from the curvature the scalars' trade renders
+at the end of the fit.
+
 The scalars' sd, the other way round, counts what the texels take from them: `texel_trade`,
 the Schur complement's term of the curvature (each texel's cross curvature with a scalar from
 one reverse pass per scalar, `H_tt` the diagonal above), which the uncertainty adds
@@ -201,6 +205,27 @@ def smooth_textures(problem: Problem, u: np.ndarray, spp: int, seed: int) -> Smo
     smoothed_u = u.copy()
     smoothed_u[:n] = np.asarray(to_unconstrained(problem.free, _by_key(problem, out)), np.float32)
     return Smoothed(smoothed_u, std, weights, seen, h)
+
+
+def texel_sd(
+    problem: Problem, u: np.ndarray, h: np.ndarray, sigma2: float, keys: set[str]
+) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """The texels' sd of the textures named by `keys` where no smoothing gave them one (a
+    mask's texels): `sqrt(sigma2 / h_i)`, each texel's own information with its neighbours and
+    the scalars held (`h`: `curvature`'s diagonal at `u`, `sigma2` the residual's variance per
+    pixel at the same resolution), at most the sd of a value uniform over its bounds (a texel no
+    pixel sees: h = 0); with the share of each texture's texels seen."""
+    std, seen, i = {}, {}, 0
+    for f in problem.free:
+        if f.shape and f.key in keys:
+            curv = np.asarray(h[i : i + f.size], np.float64).reshape(f.shape)
+            uniform = (float(np.max(f.spec.upper)) - float(np.min(f.spec.lower))) / np.sqrt(12.0)
+            with np.errstate(divide="ignore"):
+                sd = np.sqrt(sigma2 / curv)
+            std[f.key] = np.minimum(sd, uniform).astype(np.float32)
+            seen[f.key] = float(np.mean(curv > 0))
+        i += f.size
+    return std, seen
 
 
 #: Seed offset of the renders of the scalars' trade with the texels.
