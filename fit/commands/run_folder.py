@@ -336,7 +336,10 @@ def _summary(cfg, capture, held, start, result, wall, panels, interrupted, free,
         "values": result.values,
         "std": result.std,
         "correlation": None if result.correlation is None else result.correlation.tolist(),
-        "correlation_labels": _labels(result.values),
+        # the correlation's: its scalars and gains (a texture's texels have none)
+        "correlation_labels": _labels(
+            {k: v for k, v in result.values.items() if k not in {f.key for f in free if f.shape}}
+        ),
         "poorly_determined": result.poorly_determined,
         # values that ended at a bound: the truth there, past it, or a local minimum
         "at_bounds": at_bounds(free, result.values),

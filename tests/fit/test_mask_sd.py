@@ -119,3 +119,45 @@ def test_a_fit_with_a_mask_free_reports_its_texels_sd(tmp_path):
     # neighbours, which share its pixels through the bilinear lookup)
     assert np.all(np.abs(texels - MASK)[well] < 0.2), (texels[..., 0], sd[..., 0])
     assert abs(result.values["glaze.ior"] - 1.5) < 3 * result.std["glaze.ior"]
+
+
+def test_a_run_folder_holds_the_masks_sd_and_the_scalars_labels(tmp_path):
+    """`layerfit fit` with a mask's texture free beside scalars: `<key>.sd.exr` beside the
+    texture, the summary's texture entry with its median over the seen texels, the report's sd
+    image; the correlation's labels name its scalars alone (it has no texels), one per row."""
+    import json
+    import tomllib
+
+    from test_stained import TRUTH, material, stain_texture
+
+    from captures.images import read_image
+    from fit import recovery
+    from fit.commands.fit import fit
+    from fit.commands.synth import synthesize
+
+    write_image(tmp_path / "stain.exr", stain_texture())
+    table = tomllib.loads(material(TRUTH, TRUTH["stain.reflectance"], 'texture = "stain.exr"\n'))
+    truth = build_material(table["material"], tmp_path / "truth.toml")
+    synthesize(recovery.studio("sphere", 32, 24), truth, tmp_path / "capture", spp=64)
+    (tmp_path / "fit.toml").write_text(
+        'capture = "capture"\n[fit]\nfree = ["glaze.ior", "stain.reflectance", '
+        '"stain.mask.texture"]\n[fit.textures]\n"stain.mask.texture" = [8, 4]\n'
+        '[[fit.phases]]\nsolver = "adam"\nsteps = 10\nspp = 4\nlr = 0.1\n'
+        '[[fit.phases]]\nsolver = "gn"\nsteps = 2\nspp = 8\njacobian_spp = 8\n'
+        + material(TRUTH, [0.5] * 3)
+    )
+    summary, out = fit(tmp_path / "fit.toml", tmp_path / "run")
+    labels = summary["correlation_labels"]
+    assert labels == ["glaze.ior", *(f"stain.reflectance[{i}]" for i in range(3))]
+    assert len(summary["correlation"]) == len(labels)
+    entry = summary["textures"]["stain.mask.texture"]
+    sd = read_image(out / entry["sd_file"])
+    assert sd.shape == (4, 8, 1) and np.all(sd <= UNIFORM + 1e-6)
+    assert entry["smoothness"] is None and 0 < entry["seen"] <= 1
+    below = sd[sd < UNIFORM * (1 - 1e-4)]
+    if below.size:
+        assert entry["median_sd"] == np.median(below)
+    else:
+        assert entry["median_sd"] is None
+    assert json.loads((out / "summary.json").read_text())["textures"] == summary["textures"]
+    assert "stain.mask.texture sd" in (out / "report.html").read_text()
