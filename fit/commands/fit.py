@@ -6,7 +6,7 @@ out/<config name>/
   summary.json          values, std, truth and errors, per-view residuals, phase outcomes and
                         times, software versions
   report.html report/   photo | fit | difference per view (held-out views marked), loss per
-                        phase, the parameter table, the correlation heat map, fitted masks
+                        phase, the parameter table, the correlation table, fitted masks
   checkpoint.npz        while running (removed at the end): `--resume` continues from it
 ```
 Every file is written atomically; an existing run folder is never overwritten without `force`.

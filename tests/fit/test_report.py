@@ -95,7 +95,6 @@ def test_report_files(report: Path):
     assert report == report.parent / "report.html"
     pngs = sorted(p.name for p in (report.parent / "report").iterdir())
     assert pngs == [
-        "correlation.png",
         "loss.png",
         "mask-00-glaze.mask.png",
         "view-00-view_00.png",
@@ -110,6 +109,50 @@ def test_report_files(report: Path):
     assert "<tr class='off'>" in text  # roughness is 5 std off: highlighted
     assert "<tr class='poor'>" in text  # glaze.ior
     assert not list(report.parent.rglob(".*partial*"))  # no temporary files left behind
+
+
+def test_the_correlation_is_a_table_of_coloured_cells(report: Path):
+    """One row per parameter, its label first and one cell per parameter: red for +1, blue for
+    -1 (the colour map's ends), the value written; an undetermined parameter's cells grey."""
+    import re
+
+    import matplotlib
+
+    from fit.output.report import CORR_CMAP, _hex
+
+    text = report.read_text(encoding="utf-8")
+    table = text[text.index("<table class='corr'>") :]
+    table = table[: table.index("</table>")]
+    rows = re.findall(r"<tr><th class='key'>([^<]*)</th>(.*?)</tr>", table)
+    assert [label for label, _ in rows] == LABELS
+    for i, (_, cells) in enumerate(rows):
+        found = re.findall(r"<td ([^>]*)>([^<]*)</td>", cells)
+        assert len(found) == len(LABELS)
+        for j, (attributes, value) in enumerate(found):
+            if (i == 3) != (j == 3):  # the fake fit's undetermined parameter
+                assert "class='undetermined'" in attributes and value == ""
+            elif i == j:
+                red = _hex(matplotlib.colormaps[CORR_CMAP](1.0))
+                assert f"background: {red}" in attributes and value == "1.00"
+            else:
+                assert re.fullmatch(r"-?[01]\.\d\d", value), value
+    assert "undetermined (no correlation known)" in text
+
+
+def test_a_large_correlation_is_coloured_without_its_values():
+    """Past `CORR_WRITTEN` rows the cells are coloured and hold their values in titles alone;
+    -1 is the colour map's blue end."""
+    import matplotlib
+
+    from fit.output.report import CORR_CMAP, CORR_WRITTEN, _correlation_table, _hex
+
+    n = CORR_WRITTEN + 1
+    corr = np.eye(n)
+    corr[0, 1] = corr[1, 0] = -1.0
+    html = _correlation_table(corr, [f"p{i}" for i in range(n)])
+    assert html.count("<td ") == n * n and "1.00<" not in html
+    assert f"background: {_hex(matplotlib.colormaps[CORR_CMAP](0.0))}" in html
+    assert "title='p0 / p1: -1.000'" in html and "undetermined" not in html
 
 
 def test_report_without_optional_parts(tmp_path: Path):
