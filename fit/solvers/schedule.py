@@ -308,7 +308,9 @@ class _Trade:
 
     def __call__(self, jac1, jac2):
         if self.h is None:
-            self.h = curvature(self.problem, self.u, TEXTURE_SPP, self.seed, self.downscale)
+            self.h = curvature(
+                self.problem, self.u, TEXTURE_SPP, self.seed, self.downscale, self.stop
+            )
         return texel_trade(
             self.problem,
             self.u,
@@ -322,17 +324,17 @@ class _Trade:
         )
 
 
-def _masks_sd(problem: Problem, u, result: Result, phases, seed: int, h: np.ndarray | None):
+def _masks_sd(problem: Problem, u, result: Result, phases, seed: int, h, stop=None):
     """Each texel's sd of the free textures no smoothing gave one (a mask's; `texel_sd`), at the
     last phase's resolution: from the curvature's diagonal `h` where the trade or the smoother
-    has it there, and the residual's variance of one render, into `result`'s `texture_std` and
-    `texture_seen`."""
+    has it there (else rendered: `stop` as the uncertainty's), and the residual's variance of one
+    render, into `result`'s `texture_std` and `texture_seen`."""
     keys = {f.key for f in problem.free if f.shape} - set(result.texture_std or {})
     if not keys:
         return
     downscale, seed = phases[-1].downscale, seed + len(phases)
     if h is None:
-        h = curvature(problem, u, TEXTURE_SPP, seed, downscale)
+        h = curvature(problem, u, TEXTURE_SPP, seed, downscale, stop)
     sigma2 = residual_variance(problem, u, TEXTURE_SPP, seed + PROBE_SEED_OFFSET - 1, downscale)
     std, seen = texel_sd(problem, u, h, sigma2, keys)
     result.texture_std = {**(result.texture_std or {}), **std}
@@ -582,6 +584,6 @@ def run_schedule(
             h = trade.h if trade is not None else None
             if h is None and smoothed is not None and phases[-1].downscale == 1:
                 h = smoothed.curvature
-            _masks_sd(problem, u, result, phases, seed, h)
+            _masks_sd(problem, u, result, phases, seed, h, stop)
     result.linearisation = None  # the uncertainty's only: not carried on (a start's Ray result)
     return result

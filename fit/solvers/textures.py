@@ -87,11 +87,12 @@ def laplacian(height: int, width: int):
 
 
 def curvature(
-    problem: Problem, u: np.ndarray, spp: int, seed: int, downscale: int = 1
+    problem: Problem, u: np.ndarray, spp: int, seed: int, downscale: int = 1, stop=None
 ) -> np.ndarray:
     """The diagonal of the Gauss-Newton curvature of the loss in the physical material values
     (see the module; negative estimates, texels whose information is below the renders' noise,
-    are 0)."""
+    are 0). `stop()` is asked before each probe's reverse passes; True (a Ctrl-C) raises
+    `KeyboardInterrupt` there."""
     renderer = problem.renderer(downscale)
     n = problem.n_material
     values = np.asarray(to_physical(problem.free, np.asarray(u, np.float64)[:n]), np.float32)
@@ -99,6 +100,8 @@ def curvature(
     rng = np.random.default_rng(seed)
     total = np.zeros(n)
     for k in range(PROBES):
+        if stop is not None and stop():
+            raise KeyboardInterrupt
         v = (rng.integers(0, 2, scale.size) * 2 - 1) * scale
         cotangent = v.astype(np.float32)
         s = seed + PROBE_SEED_OFFSET + 2 * k
@@ -261,7 +264,7 @@ def texel_trade(
     u = np.asarray(u, np.float64)
     values = np.asarray(to_physical(problem.free, u[:n]), np.float64)
     if h is None:
-        h = curvature(problem, u, spp, seed, downscale)
+        h = curvature(problem, u, spp, seed, downscale, stop)
     diagonal = np.zeros(n)
     texel = np.zeros(n, bool)
     i = 0

@@ -8,6 +8,7 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from captures.capture import Capture, View
 from captures.images import write_image
@@ -95,6 +96,13 @@ def test_a_mask_texels_curvature_matches_its_rendered_jacobian(tmp_path):
     np.testing.assert_allclose(sd.ravel()[seen], np.sqrt(1e-4 / h[seen]), rtol=1e-5)
     assert np.allclose(sd.ravel()[h == 0], UNIFORM)
     assert np.all(sd <= UNIFORM + 1e-7)
+
+
+def test_a_stop_asked_for_ends_the_curvature_before_its_renders(tmp_path):
+    """A Ctrl-C while the masks' curvature renders stops it before the next probe."""
+    problem, u = mask_problem(tmp_path, 4, 4)
+    with pytest.raises(KeyboardInterrupt):
+        curvature(problem, u, 4, 0, stop=lambda: True)
 
 
 def test_a_fit_with_a_mask_free_reports_its_texels_sd(tmp_path):
