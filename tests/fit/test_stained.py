@@ -54,11 +54,12 @@ softness = 0.005
 
 
 #: Per shape: the least stain IoU, the glaze pigment's and the stain colour's largest errors.
-#: The sphere meets the targets (IoU 0.9, colours 0.02; measured IoU 0.938, pigment 0.009, stain
-#: 0.019); the torus, smaller in the views, does not (IoU 0.86, pigment 0.024, stain 0.021),
-#: and from a mask of ones it lost its layers apart (IoU 0.36, ior +0.28). Both: ior within
-#: 0.03, alpha within 5 % (measured 0.005 and 0.019; 2.6 and 1.7 %).
-BOUNDS = {"sphere": (0.9, 0.02, 0.03), "torus": (0.8, 0.03, 0.03)}
+#: The sphere meets the targets (IoU 0.9, colours 0.02; measured IoU 0.941, pigment 0.009, stain
+#: 0.017); the torus, smaller in the views, meets the IoU's but not the colours' (IoU 0.901,
+#: pigment 0.024, stain 0.024; 0.86, 0.024 and 0.021 on 2026-12-05), and from a mask of ones it
+#: lost its layers apart (IoU 0.36, ior +0.28). Both: ior within 0.03, alpha within 5 %
+#: (measured 0.008 and 0.019; 2.8 and 1.3 %).
+BOUNDS = {"sphere": (0.9, 0.02, 0.03), "torus": (0.85, 0.03, 0.03)}
 #: The largest error in reported sd of any scalar (see the test).
 SD_BOUND = 8.0
 
