@@ -129,6 +129,20 @@ def test_a_fit_with_a_mask_free_reports_its_texels_sd(tmp_path):
     assert abs(result.values["glaze.ior"] - 1.5) < 3 * result.std["glaze.ior"]
 
 
+def test_a_fit_of_a_mask_alone_reports_its_texels_sd(tmp_path):
+    """With the mask's texture the only free value (Adam alone, no uncertainty of scalars), its
+    texels still get their sd, rendered at the last phase's resolution."""
+    problem, u = mask_problem(tmp_path, 16, 16)
+    problem = Problem(problem.capture, problem.material, problem.free[:1])
+    assert [f.key for f in problem.free] == ["glaze.mask.texture"]
+    adam = Phase(solver="adam", steps=10, spp=4, lr=0.1)
+    result = run_schedule(problem, problem.values(u[:16]), (adam,), seed=1, uncertainty_spp=8)
+    assert result.std is None
+    sd = result.texture_std["glaze.mask.texture"]
+    assert sd.shape == (4, 4, 1) and np.all(sd > 0) and np.all(sd <= UNIFORM + 1e-7)
+    assert np.any(sd < 0.5 * UNIFORM) and np.any(np.isclose(sd, UNIFORM)), sd[..., 0]
+
+
 def test_a_run_folder_holds_the_masks_sd_and_the_scalars_labels(tmp_path):
     """`layerfit fit` with a mask's texture free beside scalars: `<key>.sd.exr` beside the
     texture, the summary's texture entry with its median over the seen texels, the report's sd
