@@ -60,7 +60,6 @@ img.view { width: 100%; } img.pixelated { image-rendering: pixelated; }
 .legend .bar { display: inline-block; width: 160px; height: .8em; margin: 0 .4em;
   vertical-align: middle; border: 1px solid #999; } .legend .bar.invalid { width: 1.2em; }
 table.corr td { min-width: 2.4em; padding: 2px 3px; text-align: center; font-size: 11px; }
-table.corr td.undetermined { background: #bfbfbf; }
 table.corr th { background: none; font: 12px monospace; }
 table.corr th.key { text-align: left; } table.corr th.up { vertical-align: bottom; }
 table.corr th.up span { writing-mode: vertical-rl; transform: rotate(180deg);
@@ -153,11 +152,8 @@ def _diff_legend() -> str:
     import matplotlib
 
     cmap = matplotlib.colormaps[DIFF_CMAP]
-    stops = ", ".join(
-        "#{:02x}{:02x}{:02x}".format(*(round(255 * c) for c in cmap(t)[:3]))
-        for t in np.linspace(0, 1, 9)
-    )
-    grey = "#{0:02x}{0:02x}{0:02x}".format(round(255 * INVALID_GREY))
+    stops = ", ".join(_hex(cmap(t)) for t in np.linspace(0, 1, 9))
+    grey = _hex((INVALID_GREY,) * 3)
     return (
         "<p class='legend'>(render \u2212 photo) / exposure: "
         f"<span>\u2212{DIFF_RANGE:g}</span><span class='bar' "
@@ -210,6 +206,7 @@ def _correlation_table(corr: np.ndarray, labels: list[str]) -> str:
     cmap = matplotlib.colormaps[CORR_CMAP]
     n = corr.shape[0]
     written = n <= CORR_WRITTEN
+    grey = _hex((UNDETERMINED_GREY,) * 3)
     head = "".join(f"<th class='up'><span>{_e(label)}</span></th>" for label in labels)
     rows = []
     for i in range(n):
@@ -218,7 +215,10 @@ def _correlation_table(corr: np.ndarray, labels: list[str]) -> str:
             v = float(corr[i, j])
             pair = f"{_e(labels[i])} / {_e(labels[j])}"
             if not np.isfinite(v):
-                cells.append(f"<td class='undetermined' title='{pair}: undetermined'></td>")
+                cells.append(
+                    f"<td class='undetermined' style='background: {grey}' "
+                    f"title='{pair}: undetermined'></td>"
+                )
                 continue
             ink = "#fff" if abs(v) > 0.6 else "#000"
             text = f"{v:.2f}" if written else ""
@@ -233,7 +233,6 @@ def _correlation_table(corr: np.ndarray, labels: list[str]) -> str:
         f"style='background: linear-gradient(to right, {stops})'></span><span>+1</span>"
     )
     if not np.all(np.isfinite(corr)):
-        grey = _hex((UNDETERMINED_GREY,) * 3)
         legend += (
             f"; <span class='bar invalid' style='background: {grey}'></span> undetermined "
             "(no correlation known)"
