@@ -23,6 +23,7 @@ PAGE_WIDTH = 1000  # px: the page's content; narrower views are scaled up with s
 CORR_CMAP = "RdBu_r"  # the correlation table's colours: blue negative, red positive
 CORR_WRITTEN = 20  # the most rows whose correlations are written in their cells
 UNDETERMINED_GREY = 0.75  # an undetermined parameter's correlations (unknown, not 0)
+MASK_WIDTH, MASK_HEIGHT = 200, 300  # px: the most a fitted mask or texture is shown
 DASH, PLUS_MINUS = "\u2014", "\u00b1 "
 
 
@@ -54,7 +55,7 @@ td.text { font-family: inherit; max-width: 28em; overflow-wrap: anywhere; }
 tr.poor td, span.poor { background: #fff3c4; } tr.off td, span.off { background: #ffd9d9; }
 td.bad { color: #b00; font-weight: 600; }
 .masks { display: flex; flex-wrap: wrap; gap: 1em; } .masks figure { border-color: #ccc; }
-.masks img { width: 200px; image-rendering: pixelated; border: 1px solid #999; }
+.masks img { image-rendering: pixelated; border: 1px solid #999; }
 .titles { display: grid; font-size: 12px; text-align: center; color: #333; }
 img.view { width: 100%; } img.pixelated { image-rendering: pixelated; }
 .legend .bar { display: inline-block; width: 160px; height: .8em; margin: 0 .4em;
@@ -391,8 +392,11 @@ def write_report(
                 scale = 1.0 / max(float(np.percentile(shown, 99.5)), 1e-6)
                 shown, caption = shown * scale, f"{key} (x {scale:.3g})"
             png = _mask_png(shown, assets / f"mask-{i:02d}-{_slug(key)}.png")
+            height, width = shown.shape[:2]  # a tall texture (the cup's 32x128) at most as tall:
+            shown_width = min(MASK_WIDTH, round(MASK_HEIGHT * width / height))
             page.append(
-                f"<figure>{_img(png, key, '')}<figcaption>{_e(caption)}</figcaption></figure>"
+                f"<figure><img src='report/{_e(png.name)}' alt='{_e(key)}' "
+                f"style='width: {shown_width}px'><figcaption>{_e(caption)}</figcaption></figure>"
             )
         page.append("</div>")
     page.append("</body></html>\n")

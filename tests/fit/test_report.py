@@ -155,6 +155,19 @@ def test_a_large_correlation_is_coloured_without_its_values():
     assert "title='p0 / p1: -1.000'" in html and "undetermined" not in html
 
 
+def test_masks_are_shown_at_most_as_wide_and_as_tall_as_the_page_allows(tmp_path: Path):
+    """A square or wide mask 200 px wide, a tall one (the cup's 32x128 texels) 300 px tall."""
+    from fit.output.report import MASK_HEIGHT, MASK_WIDTH
+
+    masks = {
+        "wide": np.zeros((16, 64, 1), np.float32),
+        "tall": np.zeros((128, 32, 1), np.float32),
+    }
+    html = write_report(tmp_path, {"values": {}}, [], masks).read_text("utf-8")
+    assert f"alt='wide' style='width: {MASK_WIDTH}px'" in html
+    assert f"alt='tall' style='width: {MASK_HEIGHT * 32 // 128}px'" in html
+
+
 def test_report_without_optional_parts(tmp_path: Path):
     """A summary with every optional key missing still gives a page (dashes, no figures)."""
     html = write_report(tmp_path, {"values": {"glaze.roughness": 0.2}}, []).read_text("utf-8")
