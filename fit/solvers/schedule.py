@@ -461,7 +461,8 @@ def run_schedule(
     if saved is not None and first == len(phases):  # stopped after the last phase's end
         _restore_phase_result(result, saved, history)
     # colour textures are smoothed once, after the last Adam phase (before `gn` polishes the
-    # scalars); a fit resumed past that point reports no texel sd
+    # scalars); a fit resumed past that point reports their texels' own sd, as a mask's
+    # (`_masks_sd`)
     adams = [k for k, p in enumerate(phases) if p.solver == "adam"]
     colours = any(f.shape and f.spec.kind == "rgb" for f in problem.free)
     smooth_before = adams[-1] + 1 if colours and adams else -1
