@@ -98,10 +98,16 @@ def connect(address: str | None = None, num_cpus: int | None = None) -> Iterator
         ray.shutdown()
 
 
+#: The fewest threads a worker gives Dr.Jit: with one (or none), Mitsuba 3.9 never returns from
+#: loading an EXR bitmap (the cup's masks, a free texture's start), and a `--starts` fit or a
+#: batch task of one CPU hung there (`tests/fit/test_batch.py`).
+MIN_THREADS = 2
+
+
 def prepare_worker(cpus: int, variant: str | None, kernel_cache: str | None = None) -> str:
     """In a worker, before its first fit: Dr.Jit's kernel cache folder on this node (only while
     Dr.Jit is not loaded yet in this process), the Mitsuba variant with our plugins, and Dr.Jit's
-    thread count = the task's CPUs. Returns the variant."""
+    thread count = the task's CPUs, at least `MIN_THREADS`. Returns the variant."""
     from .variant import select_variant
 
     if (cpus, variant) in _prepared:
@@ -124,7 +130,7 @@ def prepare_worker(cpus: int, variant: str | None, kernel_cache: str | None = No
     import materials
 
     materials.register()
-    dr.set_thread_count(cpus)
+    dr.set_thread_count(max(cpus, MIN_THREADS))
     _prepared.add((cpus, variant))
     return chosen
 

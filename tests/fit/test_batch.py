@@ -513,3 +513,36 @@ def test_a_capture_that_cannot_be_one_stops_the_batch_before_ray(tmp_path):
         spec.write_text(f'configs = ["fit.toml"]\ncaptures = {captures}\n')
         with pytest.raises(InputError, match=message):
             load_batch(spec)
+
+
+def test_a_one_cpu_worker_loads_an_exr_texture(tmp_path):
+    """A worker prepared for one CPU (a `--starts` fit's task, a batch's) loads an EXR bitmap,
+    as the cup's masks and a free texture's start are: with Dr.Jit's thread count at 1 Mitsuba
+    3.9 never returned from it (the cup's `--starts 2` hung). In a fresh process, so that a hang
+    fails this test instead of the suite."""
+    import subprocess
+    import sys
+
+    from captures.images import write_image
+
+    write_image(tmp_path / "mask.exr", np.full((4, 8, 1), 0.25, np.float32))
+    script = (
+        "import sys, numpy as np\n"
+        "from fit.cluster import prepare_worker\n"
+        "prepare_worker(1, None)\n"
+        "from fit.material.free import texture_data\n"
+        "t = texture_data({'type': 'bitmap', 'filename': sys.argv[1], 'raw': True})\n"
+        "assert t.shape == (4, 8, 1) and np.allclose(t, 0.25), t\n"
+    )
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", script, str(tmp_path / "mask.exr")],
+            check=False,
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    except subprocess.TimeoutExpired:
+        pytest.fail("loading an EXR texture in a one-CPU worker hung for 120 s")
+    assert done.returncode == 0, done.stderr[-2000:]
