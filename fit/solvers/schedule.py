@@ -580,7 +580,7 @@ def run_schedule(
                 # once it is done, the fit is whole and is written
                 stop=stop,
             )
-    if problem.textures:
+    if any(f.shape and f.key not in (result.texture_std or {}) for f in problem.free):
         with timing.timed("texture sd"):
             h = trade.h if trade is not None else None
             if h is None and smoothed is not None and phases[-1].downscale == 1:
