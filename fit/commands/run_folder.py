@@ -35,6 +35,7 @@ from ..material import (
 from ..material.preset import software_versions
 from ..output import ViewPanel, write_report, write_text
 from ..solvers import Checkpoint
+from ..solvers.textures import uniform_sd
 
 log = logging.getLogger(__name__)
 
@@ -369,7 +370,7 @@ def _summary(cfg, capture, held, start, result, wall, panels, interrupted, free,
 def _median_sd(sd: np.ndarray, f) -> float | None:
     """The median texel sd of free texture `f` over the texels whose sd is below that of a value
     uniform over its bounds (what a texel no pixel sees is given); None where there are none."""
-    cap = (float(np.max(f.spec.upper)) - float(np.min(f.spec.lower))) / np.sqrt(12.0)
+    cap = uniform_sd(f)
     below = np.asarray(sd)[np.asarray(sd) < cap * (1 - 1e-4)]
     return float(np.median(below)) if below.size else None
 

@@ -62,6 +62,12 @@ VARIANCE_PROBES = 32
 PROBE_SEED_OFFSET = 0x7E4E1
 
 
+def uniform_sd(f) -> float:
+    """The sd of a value uniform over free texture `f`'s bounds: what a texel no pixel sees is
+    known to be, and the most a texel's sd is reported."""
+    return (float(np.max(f.spec.upper)) - float(np.min(f.spec.lower))) / np.sqrt(12.0)
+
+
 @dataclass
 class Smoothed:
     """The smoothed vector, and per texture its texels' sd, the prior weight chosen and the
@@ -200,7 +206,7 @@ def smooth_textures(problem: Problem, u: np.ndarray, spp: int, seed: int) -> Smo
                 with np.errstate(divide="ignore"):
                     sd[..., c] = np.sqrt(sigma2 / information)
             lo, hi = float(np.min(f.spec.lower)), float(np.max(f.spec.upper))
-            std[f.key] = np.minimum(sd, (hi - lo) / np.sqrt(12.0)).astype(np.float32)
+            std[f.key] = np.minimum(sd, uniform_sd(f)).astype(np.float32)
             out[i : i + f.size] = np.clip(smoothed, lo, hi).ravel()
             weights[f.key] = float(np.median(chosen))
             seen[f.key] = float(np.mean(curv > 0))
@@ -222,10 +228,9 @@ def texel_sd(
     for f in problem.free:
         if f.shape and f.key in keys:
             curv = np.asarray(h[i : i + f.size], np.float64).reshape(f.shape)
-            uniform = (float(np.max(f.spec.upper)) - float(np.min(f.spec.lower))) / np.sqrt(12.0)
             with np.errstate(divide="ignore"):
                 sd = np.sqrt(sigma2 / curv)
-            std[f.key] = np.minimum(sd, uniform).astype(np.float32)
+            std[f.key] = np.minimum(sd, uniform_sd(f)).astype(np.float32)
             seen[f.key] = float(np.mean(curv > 0))
         i += f.size
     return std, seen
