@@ -6,9 +6,13 @@ that name (any BSDF, `layered` included) and every layer but the bottom one has 
 `w_k = m_k * prod_{j > k} (1 - m_j)` (the bottom mask is 1), the Russian roulette of the paper
 walked from the top.
 
-One layer is chosen per interaction with probability `p_k = detach(w_k)`, and its BSDF is
-evaluated alone (`dr.switch`: lanes run only their layer's code) with weight `w_k / detach(p_k)`,
-which is 1 but carries the masks' gradients. The choice comes from a hash of the interaction (its
+One layer is chosen per interaction with probability `p_k = (1 - K MIN_PICK) detach(w_k) +
+MIN_PICK` (K layers), and its BSDF is evaluated alone (`dr.switch`: lanes run only their layer's
+code) with weight `w_k / p_k`, about 1 but carrying the masks' gradients. Every layer keeps a
+chance of `MIN_PICK`: a layer whose share is exactly 0 (a fitted mask's texel on its bound) is
+still picked now and then, so the gradient of its share there has the layer's own term (picked with
+its share alone, the layer was never evaluated there, and its mask's gradient lacked it: a brighter
+layer's texel at 0 was pushed further down). The choice comes from a hash of the interaction (its
 position and UV, salted by the stack's layer names), so `eval`, `pdf` and `sample` at one
 interaction agree on the layer; over the hits of a pixel the choice is uniform, so the expected
 BSDF is `sum_k w_k f_k` (equal to `blendbsdf` for a constant two-layer mask).
@@ -30,6 +34,9 @@ from .params import LAYERED_PARAMS
 
 # UV step of the finite differences that give the height field's slope.
 _BUMP_EPS = 1e-4
+#: The least probability of picking any layer (see the module): the samples spent on a layer of
+#: share 0 (a cup's four layers, its masks mostly 0 or 1: under 1 %) return 0.
+MIN_PICK = 0.002
 
 
 def _uniform(si, salt: int):
@@ -98,17 +105,18 @@ class Layered(mi.BSDF):
         return shares
 
     def _prepare(self, si, active):
-        """(layer index, weight `w_k / detach(p_k)`, interaction in the bumped frame)."""
+        """(layer index, weight `w_k / p_k`, interaction in the bumped frame)."""
         mask_values = self._mask_values(si, active)
         shares = self._shares(mask_values)
+        keep = 1.0 - len(shares) * MIN_PICK
+        picks = [keep * dr.detach(w) + MIN_PICK for w in shares]
         u = _uniform(si, self.salt)
         index, weight, cumulative = mi.UInt32(0), mi.Float(0.0), mi.Float(0.0)
-        for k, w in enumerate(shares[:-1]):
-            cumulative += dr.detach(w)
+        for k, p in enumerate(picks[:-1]):
+            cumulative += p
             index = dr.select(u >= cumulative, mi.UInt32(k + 1), index)
-        for k, w in enumerate(shares):
-            p = dr.detach(w)
-            weight = dr.select(index == k, dr.select(p > 0, w / p, 0.0), weight)
+        for k, (w, p) in enumerate(zip(shares, picks, strict=True)):
+            weight = dr.select(index == k, w / p, weight)
         return index, weight, self._bumped(si, mask_values, active)
 
     # Bump mapping ---------------------------------------------------------------------------------
