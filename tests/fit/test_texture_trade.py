@@ -106,3 +106,18 @@ def test_the_trade_matches_the_texels_rendered_jacobian():
     # measured: the mean 0.0126 against 0.0101 (the Jacobians of seeds 5 and 6: 0.0088 against
     # 0.0072); with the glaze's lobes sampled at their weight estimate alone 0.0090 against 0.0080
     assert trade[0, 0] == pytest.approx(expected, rel=0.35)
+
+
+def test_texels_on_a_bound_trade_too():
+    """A mask's fitted texels reach 0 and 1, and each still trades with the scalars (the data
+    hold it there, but would take it a little inside as well): the pigment texture with every
+    texel on its lower bound trades with the ior. Held there, as an active bound, the stained
+    torus's glaze pigment ended 7-10 sd off."""
+    problem, _ = pigment_texture_problem(8, 8)
+    u = problem.unconstrained({"glaze.pigment": [0.0] * 48, "glaze.ior": 1.5})
+    assert np.all(np.asarray(problem.values(u)["glaze.pigment"]) < 2e-3)  # on the bound
+    held, take, _ = problem.holding_textures(u)
+    jac1 = finite_rows(*linearised(held, take(u), 32, 1))[1]
+    jac2 = finite_rows(*linearised(held, take(u), 32, 2))[1]
+    trade = texel_trade(problem, u, (jac1, jac2), 32, 3)
+    assert trade.shape == (1, 1) and trade[0, 0] > 0.05 * float(np.sum(jac1 * jac2)), trade
