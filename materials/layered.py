@@ -11,11 +11,11 @@ MIN_PICK` (K layers), and its BSDF is evaluated alone (`dr.switch`: lanes run on
 code) with weight `w_k / p_k`, about 1 but carrying the masks' gradients. Every layer keeps a
 chance of `MIN_PICK`: a layer whose share is exactly 0 (a fitted mask's texel on its bound) is
 still picked now and then, so the gradient of its share there has the layer's own term (picked with
-its share alone, the layer was never evaluated there, and its mask's gradient lacked it: a brighter
-layer's texel at 0 was pushed further down). The choice comes from a hash of the interaction (its
-position and UV, salted by the stack's layer names), so `eval`, `pdf` and `sample` at one
-interaction agree on the layer; over the hits of a pixel the choice is uniform, so the expected
-BSDF is `sum_k w_k f_k` (equal to `blendbsdf` for a constant two-layer mask).
+its share alone, a layer of share 0 is never evaluated, and its mask's gradient there lacks that
+term: a brighter layer's texel at 0 would be pushed further down). The choice comes from a hash of
+the interaction (its position and UV, salted by the stack's layer names), so `eval`, `pdf` and
+`sample` at one interaction agree on the layer; over the hits of a pixel the choice is uniform, so
+the expected BSDF is `sum_k w_k f_k` (equal to `blendbsdf` for a constant two-layer mask).
 
 With `bump > 0` the masks form a height field `H = bump * sum_{k > 0} m_k` (metres) that bends the
 shading normal, giving each layer visible thickness. The bumped normal is built in the tangent

@@ -132,27 +132,6 @@ def test_a_colour_texture_is_fitted_on_a_height_field(folder, tmp_path):
     assert len(held) == 2 and max(held) < 0.08, held
 
 
-#: The stained torus's material in DiLiGenT's layout (`test_a_mask_is_fitted_on_a_height_field`).
-STAINED = """[material]
-type = "layered"
-[[material.layers]]
-name = "glaze"
-type = "glaze"
-pigment = {pigment}
-roughness = {roughness}
-ior = {ior}
-[[material.layers]]
-name = "stain"
-type = "oren_nayar"
-reflectance = {stain}
-sigma = 0.3
-[material.layers.mask]
-{texture}threshold = 0.0
-softness = 0.005
-"""
-TRUTH = {"pigment": [0.1, 0.22, 0.55], "roughness": 0.1, "ior": 1.5, "stain": [0.45, 0.25, 0.1]}
-
-
 @pytest.mark.slow
 def test_a_mask_is_fitted_on_a_height_field(tmp_path):
     """A glazed torus stained on the image's left side, in DiLiGenT's layout (orthographic,
@@ -163,6 +142,8 @@ def test_a_mask_is_fitted_on_a_height_field(tmp_path):
     texels sat inside their bounds and the glaze's pigment ended 0.0054 off; held out 0.030."""
     import tomllib
 
+    from test_stained import TRUTH, material
+
     from fit.commands.fit import fit
     from fit.material import build_material
 
@@ -172,10 +153,11 @@ def test_a_mask_is_fitted_on_a_height_field(tmp_path):
     mask = np.zeros((20, 24, 1), np.float32)
     mask[:, :10] = 1.0  # the image's left 40 %
     write_image(tmp_path / "stain.exr", mask)
-    table = STAINED.format(**TRUTH, texture='texture = "stain.exr"\n')
+    table = material(TRUTH, TRUTH["stain.reflectance"], 'texture = "stain.exr"\n')
     truth = build_material(tomllib.loads(table)["material"], tmp_path / "truth.toml")
     write_folder(tmp_path / "torus", data, truth.bsdf, LIGHTS)
-    start = STAINED.format(pigment=[0.5] * 3, roughness=0.2, ior=1.3, stain=[0.5] * 3, texture="")
+    grey = {"glaze.pigment": [0.5] * 3, "glaze.roughness": 0.2, "glaze.ior": 1.3}
+    start = material(grey, [0.5] * 3)
     config = tmp_path / "fit.toml"
     config.write_text(
         f'capture = "{(tmp_path / "torus").as_posix()}"\n{start}\n'
@@ -185,10 +167,10 @@ def test_a_mask_is_fitted_on_a_height_field(tmp_path):
     )
     summary, out = fit(config, tmp_path / "run")
     values = summary["values"]
-    np.testing.assert_allclose(values["glaze.pigment"], TRUTH["pigment"], atol=0.004)
-    np.testing.assert_allclose(values["stain.reflectance"], TRUTH["stain"], atol=0.004)
-    assert abs(values["glaze.roughness"] / TRUTH["roughness"] - 1) < 0.05
-    assert abs(values["glaze.ior"] - TRUTH["ior"]) < 0.02
+    for key in ("glaze.pigment", "stain.reflectance"):
+        np.testing.assert_allclose(values[key], TRUTH[key], atol=0.004)
+    assert abs(values["glaze.roughness"] / TRUTH["glaze.roughness"] - 1) < 0.05
+    assert abs(values["glaze.ior"] - TRUTH["glaze.ior"]) < 0.02
     sd = json.loads((out / "summary.json").read_text())["textures"]["stain.mask.texture"]
     assert (out / sd["sd_file"]).is_file() and 0 < sd["median_sd"] < 0.1
     held = [v["rmse"] for v in summary["views"] if v["held_out"]]

@@ -306,6 +306,29 @@ def test_mask_gradient_of_eval_is_unbiased(key):
     assert np.all(np.abs(ad.mean(axis=0) - fd[0]) < 4 * stderr + 1e-6), (ad.mean(0), fd[0])
 
 
+@pytest.mark.parametrize("level", [0.0, 1.0])
+def test_a_mask_on_its_bound_keeps_an_unbiased_gradient(level):
+    """A two-layer stack whose mask is exactly 0 or 1 (a fitted mask's texel on its bound): the
+    layer of share 0 is still picked now and then (`MIN_PICK`), so the AD derivative of `eval` in
+    the mask averages to the mixture's, `f_glaze - f_clay`. Picked with its share alone, that
+    layer is never evaluated and the derivative lacks its term (`-f_clay` at 0)."""
+    bsdf = mi.load_dict(stack({"glaze": level}, clay=CLAY, glaze=GLAZE))
+    clay, glaze = mi.load_dict(CLAY), mi.load_dict(GLAZE)
+    n, ctx = 1 << 16, mi.BSDFContext()
+    wi, wo = direction(35, 0), direction(40, 160)
+    si = random_interactions(n, wi, seed=21, uv=np.array([0.3, 0.7]))
+    ad = ad_derivative(
+        bsdf, "glaze.mask.value", level, lambda b: b.eval(ctx, si, vec(np.broadcast_to(wo, (n, 3))))
+    )
+    one = interaction(wi[None])
+    expected = (
+        rgb(glaze.eval(ctx, one, vec(wo[None])))[0] - rgb(clay.eval(ctx, one, vec(wo[None])))[0]
+    )
+    stderr = ad.std(axis=0) / np.sqrt(n)
+    assert np.abs(expected).max() > 1e-2
+    assert np.all(np.abs(ad.mean(axis=0) - expected) < 4 * stderr + 1e-6), (ad.mean(0), expected)
+
+
 def test_bump_bends_the_normal_and_differentiates():
     props = stack(
         {"glaze": fbm_mask(softness=0.1), "lime": fbm_mask(seed=5, softness=0.1)}, bump=0.004
