@@ -13,11 +13,16 @@ from typing import Literal
 
 import numpy as np
 
-Transform = Literal["sigmoid", "log_sigmoid", "identity"]
+Transform = Literal["sigmoid", "log_sigmoid", "clipped_sigmoid", "identity"]
 Kind = Literal["float", "rgb", "texture"]
 
 #: A fit that starts at a bound starts this share of the range inside it (DESIGN.md).
 BOUND_MARGIN = 1e-3
+#: A `clipped_sigmoid` value's sigmoid is widened this share of the range past either bound and
+#: clipped to them, so the value reaches its bounds at a finite coordinate (a mask's texels: with
+#: the plain sigmoid a texel whose truth is 0 or 1 never got there, its gradient fading with the
+#: sigmoid's slope while Adam's noise stays; BENCHMARKS, "Stained objects").
+OVERSHOOT = 0.05
 #: `from_unconstrained` clips the solver's coordinate to +-this: beyond it a float32 sigmoid is
 #: at its bound anyway, and `exp(-u)` overflowing made its derivative inf / inf (NaN) where a
 #: diverged fit had walked (u = -100: every derivative of the render NaN, the fit's
@@ -36,7 +41,8 @@ class ParamSpec:
     - `lower`, `upper`: closed bounds, per channel for RGB values.
     - `transform`: how solvers see the value unconstrained (`sigmoid` maps (lower, upper) to R;
       `log_sigmoid` does so in log space, for positive scale factors: a doubling and a halving
-      are equally far from 1).
+      are equally far from 1; `clipped_sigmoid` widens the sigmoid `OVERSHOOT` past the bounds
+      and clips it there, for values that sit on them: a mask's texels).
     - `unit`: physical unit or `""`.
     - `doc`: one line for users.
     - `kind`: `float` (a scalar), `rgb` (a texture whose constant value is an RGB triple) or
@@ -76,7 +82,8 @@ class ParamSpec:
 
     def to_unconstrained(self, value, xp=np):
         """Map a bounded value to the solver's unconstrained space (values at a bound move
-        `BOUND_MARGIN` of the range inside it)."""
+        `BOUND_MARGIN` of the range inside it; with `clipped_sigmoid` they map to where the
+        widened sigmoid crosses it)."""
         if self.transform == "identity":
             return xp.asarray(value)
         if self.transform == "log_sigmoid":
@@ -84,18 +91,29 @@ class ParamSpec:
             t = (xp.log(xp.asarray(value)) - low) / (high - low)
         else:
             t = (xp.asarray(value) - self.lower) / (self.upper - self.lower)
+        if self.transform == "clipped_sigmoid":
+            t = (xp.clip(t, 0.0, 1.0) + OVERSHOOT) / (1.0 + 2.0 * OVERSHOOT)
         t = xp.clip(t, BOUND_MARGIN, 1.0 - BOUND_MARGIN)
         return xp.log(t) - xp.log1p(-t)
 
-    def from_unconstrained(self, u, xp=np):
-        """Inverse of `to_unconstrained`."""
+    def from_unconstrained(self, u, xp=np, stop_gradient=None):
+        """Inverse of `to_unconstrained`. With `clipped_sigmoid` and a `stop_gradient` (the
+        array library's, e.g. `jax.lax.stop_gradient`), the derivative passes straight through
+        the clip: a value past a bound keeps its data's gradient and comes back when they ask,
+        where a clipped derivative of 0 would hold it there for good."""
         if self.transform == "identity":
             return xp.asarray(u)
         u = xp.clip(xp.asarray(u), -MAX_COORDINATE, MAX_COORDINATE)
         if self.transform == "log_sigmoid":
             low, high = np.log(self.lower), np.log(self.upper)
             return xp.exp(low + (high - low) / (1.0 + xp.exp(-u)))
-        return self.lower + (self.upper - self.lower) / (1.0 + xp.exp(-u))
+        t = 1.0 / (1.0 + xp.exp(-u))
+        if self.transform == "clipped_sigmoid":
+            wide = (1.0 + 2.0 * OVERSHOOT) * t - OVERSHOOT
+            t = xp.clip(wide, 0.0, 1.0)
+            if stop_gradient is not None:
+                t = wide + stop_gradient(t - wide)
+        return self.lower + (self.upper - self.lower) * t
 
 
 def spec_table(*specs: ParamSpec) -> dict[str, ParamSpec]:
@@ -192,7 +210,7 @@ MASK_TEXTURE = ParamSpec(
     1.0,
     0.0,
     1.0,
-    "sigmoid",
+    "clipped_sigmoid",
     "",
     "a mask's painted texture (linear texels; fitted texel by texel)",
     kind="texture",

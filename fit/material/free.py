@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from materials.params import BOUND_MARGIN, EMITTER_PARAMS, MAX_COORDINATE, ParamSpec
+from materials.params import EMITTER_PARAMS, ParamSpec
 
 from .build import Material
 from .keys import parse_key
@@ -114,60 +114,26 @@ def texture_data(texture: dict) -> np.ndarray:
     return np.asarray(mi.traverse(mi.load_dict(texture))["data"], dtype=np.float32)
 
 
-#: A mask's texels come from the solver's coordinate through its sigmoid widened by this share of
-#: the range past either bound, then clipped to them (`mask_from_unconstrained`; a layered BSDF
-#: still picks a layer whose share is 0 now and then: `materials.layered.MIN_PICK`). With the plain
-#: sigmoid a texel whose truth is 0 or 1 never got near it: its gradient fades with the sigmoid's
-#: slope while Adam's noise stays, and the fitted texels sat inside (a stained torus's 0.056 on
-#: average where the truth paints 0, 0.89 where 1), their stain seen in the glaze beside it (the
-#: glaze's pigment 0.024 off toward the stain's complement: BENCHMARKS, "Stained objects").
-MASK_OVERSHOOT = 0.05
-
-
-def mask_from_unconstrained(spec: ParamSpec, u, xp=np):
-    """A mask's texels from the solver's coordinates: the widened sigmoid (`MASK_OVERSHOOT`)
-    clipped to the bounds. Under JAX the derivative passes through the clip (a
-    straight-through estimate: a texel past it keeps its data's gradient, so it comes back when
-    the photographs ask, where a clipped derivative of 0 would hold it there for good)."""
-    u = xp.clip(xp.asarray(u), -MAX_COORDINATE, MAX_COORDINATE)
-    t = (1.0 + 2.0 * MASK_OVERSHOOT) / (1.0 + xp.exp(-u)) - MASK_OVERSHOOT
-    clipped = xp.clip(t, 0.0, 1.0)
-    if xp is not np:
-        import jax
-
-        clipped = t + jax.lax.stop_gradient(clipped - t)
-    return spec.lower + (spec.upper - spec.lower) * clipped
-
-
-def mask_to_unconstrained(spec: ParamSpec, value, xp=np):
-    """Inverse of `mask_from_unconstrained` on the bounds' range (a value at a bound maps to
-    where the widened sigmoid crosses it)."""
-    t = (np.asarray(value, float) - spec.lower) / (spec.upper - spec.lower)
-    t = (np.clip(t, 0.0, 1.0) + MASK_OVERSHOOT) / (1.0 + 2.0 * MASK_OVERSHOOT)
-    t = np.clip(t, BOUND_MARGIN, 1.0 - BOUND_MARGIN)  # the plain sigmoid's (no overshoot)
-    return xp.asarray(np.log(t) - np.log1p(-t))
-
-
-def _is_mask(f: Free) -> bool:
-    return f.spec.kind == "texture"
-
-
 def to_unconstrained(free: list[Free], values: dict, xp=np):
     """The solver's vector from physical values keyed by design key."""
-    parts = []
-    for f in free:
-        value = np.asarray(values[f.key], float)
-        inverse = mask_to_unconstrained if _is_mask(f) else type(f.spec).to_unconstrained
-        parts.append(xp.ravel(xp.asarray(inverse(f.spec, value, xp))))
+    parts = [
+        xp.ravel(xp.asarray(f.spec.to_unconstrained(np.asarray(values[f.key], float), xp)))
+        for f in free
+    ]
     return xp.concatenate(parts)
 
 
 def to_physical(free: list[Free], u, xp=np):
-    """Physical values (one flat vector) from the solver's unconstrained vector."""
+    """Physical values (one flat vector) from the solver's unconstrained vector (under JAX a
+    `clipped_sigmoid`'s derivative passes straight through its clip)."""
+    stop_gradient = None
+    if xp is not np:
+        import jax
+
+        stop_gradient = jax.lax.stop_gradient
     parts, i = [], 0
     for f in free:
-        forward = mask_from_unconstrained if _is_mask(f) else type(f.spec).from_unconstrained
-        parts.append(xp.ravel(forward(f.spec, u[i : i + f.size], xp)))
+        parts.append(xp.ravel(f.spec.from_unconstrained(u[i : i + f.size], xp, stop_gradient)))
         i += f.size
     return xp.concatenate(parts)
 

@@ -138,7 +138,7 @@ def test_a_mask_is_fitted_on_a_height_field(tmp_path):
     distant lights, its height field's UVs the image's coordinates), its stain's mask free as
     a texture from 0.5 with the glaze and the stain's colour: the colours come out of the
     photographs, the mask's sd is written, and the held-out lights relight closely. Measured:
-    the colours within 0.0011, where with the mask's plain sigmoid (`MASK_OVERSHOOT` 0) its
+    the colours within 0.0011, where with the mask's plain sigmoid (`OVERSHOOT` 0) its
     texels sat inside their bounds and the glaze's pigment ended 0.0054 off; held out 0.028-0.033
     (relative RMSE)."""
     import tomllib

@@ -57,7 +57,7 @@ softness = 0.005
 #: Measured (fit seed 0, the test's): the sphere IoU 0.974, pigment 0.0016, stain 0.0029; the
 #: torus, smaller in the views, IoU 0.952, pigment 0.0033, stain 0.0204 (2.4 sd; over seeds
 #: 0-2 IoU 0.95-0.96, the stain colour 0.010-0.020). With the masks' plain sigmoid (their
-#: texels never on the bounds: `fit.material.free.MASK_OVERSHOOT`) and 60 full-resolution Adam
+#: texels never on the bounds: `materials.params.OVERSHOOT`) and 60 full-resolution Adam
 #: steps the torus's colours were 0.024 off, its IoU 0.90; from a mask of ones it lost its
 #: layers apart (IoU 0.36, ior +0.28). Both: ior within 0.03, alpha within 5 % (measured 0.0029
 #: and 0.0066; 2.6 and 1.3 %).

@@ -300,31 +300,36 @@ def test_the_default_moves_masks_textures_coarse_to_fine_and_colours_texel_by_te
 
 
 def test_a_masks_texel_maps_onto_its_bounds_and_keeps_its_gradient_past_them():
-    """A mask's texels come through a sigmoid widened past the bounds and clipped there: a
-    finite coordinate gives exactly 0 or 1, the inverse maps the bounds and the values between
-    back, and past a bound the derivative is the widened sigmoid's (straight through the clip),
-    not 0 (a texel out there comes back when its pixels ask)."""
+    """A mask's texels come through a sigmoid widened past the bounds and clipped there (its
+    declaration's `clipped_sigmoid`): a finite coordinate gives exactly 0 or 1, the inverse maps
+    the bounds and the values between back, and under JAX (`to_physical`) the derivative past a
+    bound is the widened sigmoid's (straight through the clip), not 0 (a texel out there comes
+    back when its pixels ask)."""
     import jax
     import jax.numpy as jnp
 
-    from fit.material.free import mask_from_unconstrained, mask_to_unconstrained
+    from fit.material import resolve, to_physical
     from materials.params import MASK_TEXTURE
 
     values = np.array([0.0, 1e-3, 0.25, 0.5, 0.999, 1.0])
-    u = mask_to_unconstrained(MASK_TEXTURE, values)
+    u = MASK_TEXTURE.to_unconstrained(values)
     assert np.all(np.isfinite(u)) and np.all(np.diff(u) > 0)
-    np.testing.assert_allclose(mask_from_unconstrained(MASK_TEXTURE, u), values, atol=1e-9)
+    np.testing.assert_allclose(MASK_TEXTURE.from_unconstrained(u), values, atol=1e-9)
     past = np.array([-6.0, 6.0])
-    np.testing.assert_array_equal(mask_from_unconstrained(MASK_TEXTURE, past), [0.0, 1.0])
-    np.testing.assert_array_equal(mask_from_unconstrained(MASK_TEXTURE, past, jnp), [0.0, 1.0])
-    slope = jax.grad(lambda x: jnp.sum(mask_from_unconstrained(MASK_TEXTURE, x, jnp)))
-    assert np.all(np.asarray(slope(jnp.asarray(past))) > 1e-3)
+    np.testing.assert_array_equal(MASK_TEXTURE.from_unconstrained(past), [0.0, 1.0])
+    cfg = load_render_config(ROOT / "configs" / "cup.toml")
+    material = with_free_textures(cfg.material, {"lime.mask.texture": (2, 1)})
+    free = resolve(material, ["lime.mask.texture"])
+    assert free[0].spec is MASK_TEXTURE
+    np.testing.assert_array_equal(to_physical(free, jnp.asarray(past), jnp), [0.0, 1.0])
+    slope = jax.grad(lambda x: jnp.sum(to_physical(free, x, jnp)))(jnp.asarray(past))
+    assert np.all(np.asarray(slope) > 1e-3), slope
 
 
 def test_adam_takes_a_masks_texels_onto_its_bounds(tmp_path):
     """A stain painted on one half of a glazed sphere's texture, its mask's texels fitted by
     Adam from 0.5 (the colours held at the truth): most texels end on the bound the truth
-    paints (21 of 32 within 0.02 of it, measured). With the plain sigmoid (`MASK_OVERSHOOT` 0:
+    paints (21 of 32 within 0.02 of it, measured). With the plain sigmoid (`OVERSHOOT` 0:
     the coordinate must run off to infinity while its gradient fades with the sigmoid's slope)
     1 of 32 did; the rest sat inside (0.03 where the truth is 0, 0.94 where 1), which the
     stain's colour and the glaze's pigment beside it then made up for."""
