@@ -324,8 +324,11 @@ def _header(summary: dict, title: str) -> str:
     )
 
 
-def _img(png: Path | None, alt: str, missing: str) -> str:
-    return f"<img src='report/{_e(png.name)}' alt='{_e(alt)}'>" if png else f"<p>{missing}</p>"
+def _img(png: Path | None, alt: str, missing: str, width: int | None = None) -> str:
+    style = f" style='width: {width}px'" if width else ""
+    return (
+        f"<img src='report/{_e(png.name)}' alt='{_e(alt)}'{style}>" if png else f"<p>{missing}</p>"
+    )
 
 
 def write_report(
@@ -395,8 +398,8 @@ def write_report(
             height, width = shown.shape[:2]  # a tall texture (the cup's 32x128) at most as tall:
             shown_width = min(MASK_WIDTH, round(MASK_HEIGHT * width / height))
             page.append(
-                f"<figure><img src='report/{_e(png.name)}' alt='{_e(key)}' "
-                f"style='width: {shown_width}px'><figcaption>{_e(caption)}</figcaption></figure>"
+                f"<figure>{_img(png, key, '', shown_width)}"
+                f"<figcaption>{_e(caption)}</figcaption></figure>"
             )
         page.append("</div>")
     page.append("</body></html>\n")

@@ -281,18 +281,7 @@ def default_schedule(
     if textures and not scalars:
         schedule = tuple(p for p in schedule if p.solver == "adam")
     if textures and any(fnmatch.fnmatchcase(k, MASK_TEXTURES) for k in free):
-        schedule = tuple(
-            Phase(
-                **{
-                    **p.model_dump(),
-                    "levels": TEXTURE_LEVELS,
-                    **({"steps": MASK_TEXTURE_STEPS} if p.downscale == 1 else {}),
-                }
-            )
-            if p.solver == "adam"
-            else p
-            for p in schedule
-        )
+        schedule = tuple(_for_masks(p) if p.solver == "adam" else p for p in schedule)
     if not any(fnmatch.fnmatchcase(k, MASK_THRESHOLDS) for k in free):
         return schedule
     adam, *rest = schedule
@@ -302,6 +291,15 @@ def default_schedule(
         Phase(**{**fields, "steps": adam.steps - 30}),
         *rest,
     )
+
+
+def _for_masks(adam: Phase) -> Phase:
+    """An Adam phase of `TEXTURE_SCHEDULE` with a mask's texture free: coarse to fine, and the
+    full-resolution one for `MASK_TEXTURE_STEPS`."""
+    fields = {**adam.model_dump(), "levels": TEXTURE_LEVELS}
+    if adam.downscale == 1:
+        fields["steps"] = MASK_TEXTURE_STEPS
+    return Phase(**fields)
 
 
 class _Trade:
