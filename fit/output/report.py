@@ -394,7 +394,9 @@ def write_report(
                 # a colour or an sd: its brightest texels white
                 scale = 1.0 / max(float(np.percentile(shown, 99.5)), 1e-6)
                 shown, caption = shown * scale, f"{key} (x {scale:.3g})"
-            png = _mask_png(shown, assets / f"mask-{i:02d}-{_slug(key)}.png")
+            # named by its key, not its caption (`stain.mask: truth (IoU ...)`: stain.mask_truth)
+            name = _slug(re.sub(r"\s*\(.*\)", "", key))
+            png = _mask_png(shown, assets / f"mask-{i:02d}-{name}.png")
             height, width = shown.shape[:2]  # a tall texture (the cup's 32x128) at most as tall:
             shown_width = min(MASK_WIDTH, round(MASK_HEIGHT * width / height))
             page.append(

@@ -168,6 +168,25 @@ def test_masks_are_shown_at_most_as_wide_and_as_tall_as_the_page_allows(tmp_path
     assert f"alt='tall' style='width: {MASK_HEIGHT * 32 // 128}px'" in html
 
 
+def test_a_mask_file_is_named_by_its_key_not_its_caption(tmp_path: Path):
+    """The truth beside a fitted mask, captioned with its scores, is `mask-NN-<key>_truth.png`."""
+    masks = {
+        "stain.mask": np.zeros((8, 8), np.float32),
+        "stain.mask: truth (seen share's IoU 0.77; the truth at the fitted texels' 0.98)": np.ones(
+            (8, 8), np.float32
+        ),
+        "stain.mask.texture sd": np.ones((8, 8), np.float32),
+    }
+    html = write_report(tmp_path, {"values": {}}, [], masks).read_text("utf-8")
+    names = sorted(p.name for p in (tmp_path / "report").iterdir())
+    assert names == [
+        "mask-00-stain.mask.png",
+        "mask-01-stain.mask_truth.png",
+        "mask-02-stain.mask.texture_sd.png",
+    ]
+    assert "seen share&#x27;s IoU 0.77" in html  # the caption keeps the scores
+
+
 def test_report_without_optional_parts(tmp_path: Path):
     """A summary with every optional key missing still gives a page (dashes, no figures)."""
     html = write_report(tmp_path, {"values": {"glaze.roughness": 0.2}}, []).read_text("utf-8")
