@@ -11,7 +11,7 @@ import pytest
 
 from captures.capture import load_capture
 from captures.images import read_image
-from fit.commands.run_folder import mask_iou, masks, shares, truth_material
+from fit.commands.run_folder import mask_iou, mask_rmse, masks, shares, truth_material
 from fit.commands.synth import synthesize
 from fit.config import load_render_config
 from fit.render import seen_texels
@@ -91,6 +91,25 @@ def test_mask_iou_is_one_at_the_truth_and_falls_as_a_threshold_moves(cup_capture
     )
     iou = mask_iou(moved, baked, layers, seen)
     assert iou["stain"] < 0.9 < min(iou["lime"], iou["glaze"])  # they change under the stain
+
+
+def test_mask_rmse_is_zero_at_the_truth_and_the_shares_difference_where_seen(cup_capture):
+    """`mask_rmse` of the truth against itself is 0; with every texel's stain share 0.05 higher
+    where the views see it (a fit off by a few hundredths), the stain's RMSE is 0.05 and the
+    layers below it move only by what the stain takes from them."""
+    material, capture, _ = cup_capture
+    true = truth_material(material, capture)
+    layers = true.bsdf["layers"].split(",")
+    baked = masks(true)
+    height, width = baked["glaze.mask"].shape
+    seen = seen_texels(capture.scene, width, height)
+    assert mask_rmse(baked, baked, layers, seen) == {"glaze": 0.0, "lime": 0.0, "stain": 0.0}
+    stain = np.clip(baked["stain.mask"] + 0.05, 0.0, 1.0)
+    raised = {**baked, "stain.mask": stain}
+    rmse = mask_rmse(raised, baked, layers, seen)
+    expected = np.sqrt(np.mean((stain - baked["stain.mask"])[seen] ** 2))
+    assert rmse["stain"] == pytest.approx(expected) and 0.04 < rmse["stain"] < 0.0501
+    assert 0.0 < rmse["lime"] < rmse["stain"] and 0.0 < rmse["glaze"] < rmse["stain"]
 
 
 def test_the_masks_fit_resolution_holds_the_cups_masks():
