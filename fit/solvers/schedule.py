@@ -195,14 +195,6 @@ MASK_TEXTURES = "*.mask.texture"
 #: torus (fit seeds 0-2, BENCHMARKS "Stained objects"): IoU 0.97 and 0.95-0.96 against
 #: 0.90-0.95 and 0.89-0.91, every error within 2.7 sd against 4.8, in 1.5-2x the time.
 MASK_TEXTURE_STEPS = 240
-#: That phase's learning rate (the colours' 0.03): Adam normalises each texel's step by its
-#: gradient's noise, and a mask texel the photographs see at a grazing angle or under a fraction
-#: of a pixel moves at a small share of it. Fit seeds 0-2 against 0.03 (BENCHMARKS "Stained
-#: objects", "The main job"): the stained torus's stain colour within 0.0103 against 0.0204, its
-#: IoU 0.96-0.97 against 0.95-0.96; the cup's masks glaze 0.97, lime 0.92-0.93, stain 0.77-0.81
-#: against 0.95-0.97, 0.91-0.92, 0.75-0.77, in the same time (0.1 on the cup's seed 0: stain
-#: 0.77, its threshold 3.5 sd off).
-MASK_TEXTURE_LR = 0.06
 
 #: The default schedule with textures free (`[fit.textures]`): Adam moves everything, at half
 #: resolution then at full resolution with its last half averaged (a texel's gradient is one
@@ -210,9 +202,19 @@ MASK_TEXTURE_LR = 0.06
 #: the scalars with the textures held
 #: (`Problem.holding_textures`: no forward-mode render goes through a bitmap's texels), and the
 #: uncertainty is the scalars' with the textures held.
+#: The full-resolution Adam phase's learning rate with textures free. Adam divides each texel's
+#: step by its gradient's noise, and a texel the photographs see at a grazing angle or under a
+#: fraction of a pixel moves at a small share of it. Against 0.03 (Xeon-21, 2026-12-07; BENCHMARKS
+#: "Stained objects", "The main job", "DiLiGenT pot"): the stained torus's stain colour within
+#: 0.0103 against 0.0204 and its IoU 0.96-0.97 against 0.95-0.96 (fit seeds 0-2); the cup's masks
+#: glaze 0.97, lime 0.92-0.93, stain 0.77-0.81 against 0.95-0.97, 0.91-0.92, 0.75-0.77; the
+#: DiLiGenT pot relit 0.059 against 0.061, the ball 0.019 against 0.020; in the same time (0.1 on
+#: the cup's seed 0: stain 0.77, its threshold 3.5 sd off).
+TEXTURE_LR = 0.06
+
 TEXTURE_SCHEDULE = (
     Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
-    Phase(solver="adam", steps=60, spp=16, lr=0.03, average=0.5),
+    Phase(solver="adam", steps=60, spp=16, lr=TEXTURE_LR, average=0.5),
     Phase(solver="gn", steps=12, spp=64, jacobian_spp=32, refresh=6, average=1.0),
 )
 
@@ -284,7 +286,7 @@ def default_schedule(
     `AdamOptions.hold`: on the cup, one seed's glaze threshold otherwise walked out of the
     noise's range in Adam's first 20 steps, where no gradient brings it back; BENCHMARKS, "The
     main job"). With a mask's texture free, its Adam phases move textures coarse to fine
-    (`TEXTURE_LEVELS`), the full-resolution one for `MASK_TEXTURE_STEPS` at `MASK_TEXTURE_LR`."""
+    (`TEXTURE_LEVELS`), the full-resolution one for `MASK_TEXTURE_STEPS`."""
     schedule = TEXTURE_SCHEDULE if textures else DEFAULT_SCHEDULE
     if textures and not scalars:
         schedule = tuple(p for p in schedule if p.solver == "adam")
@@ -303,10 +305,10 @@ def default_schedule(
 
 def _for_masks(adam: Phase) -> Phase:
     """An Adam phase of `TEXTURE_SCHEDULE` with a mask's texture free: coarse to fine, and the
-    full-resolution one for `MASK_TEXTURE_STEPS` at `MASK_TEXTURE_LR`."""
+    full-resolution one for `MASK_TEXTURE_STEPS`."""
     fields = {**adam.model_dump(), "levels": TEXTURE_LEVELS}
     if adam.downscale == 1:
-        fields["steps"], fields["lr"] = MASK_TEXTURE_STEPS, MASK_TEXTURE_LR
+        fields["steps"] = MASK_TEXTURE_STEPS
     return Phase(**fields)
 
 

@@ -283,12 +283,12 @@ def test_adam_with_coarse_grids_resumes_where_it_stopped():
 
 def test_the_default_moves_masks_textures_coarse_to_fine_and_colours_texel_by_texel():
     """With a mask's texture free the default's Adam phases move textures coarse to fine and
-    its full-resolution phase runs `MASK_TEXTURE_STEPS` at `MASK_TEXTURE_LR`; colours alone keep
-    the texture schedule's phases."""
+    its full-resolution phase runs `MASK_TEXTURE_STEPS`; colours alone keep the texture
+    schedule's phases; both at `TEXTURE_LR` at full resolution."""
     from fit.solvers.schedule import (
-        MASK_TEXTURE_LR,
         MASK_TEXTURE_STEPS,
         TEXTURE_LEVELS,
+        TEXTURE_LR,
         default_schedule,
     )
 
@@ -306,10 +306,10 @@ def test_the_default_moves_masks_textures_coarse_to_fine_and_colours_texel_by_te
     assert adam("glaze.pigment", "glaze.ior") == colours
     masks = adam("lime.mask.texture", "lime.mask.threshold", "glaze.ior")
     assert [m[0] for m in masks] == [TEXTURE_LEVELS] * 3
-    assert [m[2:] for m in masks if m[1] == 1] == [(MASK_TEXTURE_STEPS, MASK_TEXTURE_LR)]
+    assert [m[2:] for m in masks if m[1] == 1] == [(MASK_TEXTURE_STEPS, TEXTURE_LR)]
+    assert [c[3] for c in colours if c[1] == 1] == [TEXTURE_LR]
     assert [m[3] for m in masks if m[1] > 1] == [c[3] for c in colours if c[1] > 1] * 2
     assert MASK_TEXTURE_STEPS > max(c[2] for c in colours if c[1] == 1)
-    assert MASK_TEXTURE_LR > max(c[3] for c in colours if c[1] == 1)
 
 
 def test_a_masks_texel_maps_onto_its_bounds_and_keeps_its_gradient_past_them():
