@@ -196,12 +196,6 @@ MASK_TEXTURES = "*.mask.texture"
 #: 0.90-0.95 and 0.89-0.91, every error within 2.7 sd against 4.8, in 1.5-2x the time.
 MASK_TEXTURE_STEPS = 240
 
-#: The default schedule with textures free (`[fit.textures]`): Adam moves everything, at half
-#: resolution then at full resolution with its last half averaged (a texel's gradient is one
-#: texel's pixels' noise), masks' textures coarse to fine (`TEXTURE_LEVELS`); then `gn` polishes
-#: the scalars with the textures held
-#: (`Problem.holding_textures`: no forward-mode render goes through a bitmap's texels), and the
-#: uncertainty is the scalars' with the textures held.
 #: The full-resolution Adam phase's learning rate with textures free. Adam divides each texel's
 #: step by its gradient's noise, and a texel the photographs see at a grazing angle or under a
 #: fraction of a pixel moves at a small share of it. Against 0.03 (Xeon-21, 2026-12-07; BENCHMARKS
@@ -212,6 +206,12 @@ MASK_TEXTURE_STEPS = 240
 #: the cup's seed 0: stain 0.77, its threshold 3.5 sd off).
 TEXTURE_LR = 0.06
 
+#: The default schedule with textures free (`[fit.textures]`): Adam moves everything, at half
+#: resolution then at full resolution with its last half averaged (a texel's gradient is one
+#: texel's pixels' noise), masks' textures coarse to fine (`TEXTURE_LEVELS`); then `gn` polishes
+#: the scalars with the textures held
+#: (`Problem.holding_textures`: no forward-mode render goes through a bitmap's texels), and the
+#: uncertainty is the scalars' with the textures held.
 TEXTURE_SCHEDULE = (
     Phase(solver="adam", steps=100, spp=8, downscale=2, lr=0.1),
     Phase(solver="adam", steps=60, spp=16, lr=TEXTURE_LR, average=0.5),
