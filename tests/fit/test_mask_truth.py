@@ -76,15 +76,21 @@ def test_shares_follow_the_stack():
     np.testing.assert_allclose(out["mid"], [[1.0, 0.0, 0.2]])
 
 
-def test_mask_iou_is_one_at_the_truth_and_falls_as_a_threshold_moves(cup_capture):
-    """The truth against itself scores 1 for every layer; the stain's threshold moved (the top
-    layer) scores the stain far lower, the layers below only where it covers them."""
+@pytest.fixture(scope="module")
+def baked_truth(cup_capture):
+    """The cup's true material, its layers, its masks baked and the texels its views see."""
     material, capture, _ = cup_capture
     true = truth_material(material, capture)
-    layers = true.bsdf["layers"].split(",")
     baked = masks(true)
     height, width = baked["glaze.mask"].shape
-    seen = seen_texels(capture.scene, width, height)
+    return true, true.bsdf["layers"].split(","), baked, seen_texels(capture.scene, width, height)
+
+
+def test_mask_iou_is_one_at_the_truth_and_falls_as_a_threshold_moves(cup_capture, baked_truth):
+    """The truth against itself scores 1 for every layer; the stain's threshold moved (the top
+    layer) scores the stain far lower, the layers below only where it covers them."""
+    _, capture, _ = cup_capture
+    true, layers, baked, seen = baked_truth
     assert mask_iou(baked, baked, layers, seen) == {"glaze": 1.0, "lime": 1.0, "stain": 1.0}
     moved = masks(
         true.with_values({"stain.mask.threshold": capture.truth["stain.mask.threshold"] - 0.08})
@@ -93,16 +99,11 @@ def test_mask_iou_is_one_at_the_truth_and_falls_as_a_threshold_moves(cup_capture
     assert iou["stain"] < 0.9 < min(iou["lime"], iou["glaze"])  # they change under the stain
 
 
-def test_mask_rmse_is_zero_at_the_truth_and_the_shares_difference_where_seen(cup_capture):
-    """`mask_rmse` of the truth against itself is 0; with every texel's stain share 0.05 higher
-    where the views see it (a fit off by a few hundredths), the stain's RMSE is 0.05 and the
-    layers below it move only by what the stain takes from them."""
-    material, capture, _ = cup_capture
-    true = truth_material(material, capture)
-    layers = true.bsdf["layers"].split(",")
-    baked = masks(true)
-    height, width = baked["glaze.mask"].shape
-    seen = seen_texels(capture.scene, width, height)
+def test_mask_rmse_is_zero_at_the_truth_and_the_shares_difference_where_seen(baked_truth):
+    """`mask_rmse` of the truth against itself is 0; with the stain's mask 0.05 higher everywhere
+    (clipped at 1: a fit off by a few hundredths), the stain's RMSE over the seen texels is that
+    difference's, about 0.05, and the layers below it move only by what the stain takes."""
+    _, layers, baked, seen = baked_truth
     assert mask_rmse(baked, baked, layers, seen) == {"glaze": 0.0, "lime": 0.0, "stain": 0.0}
     stain = np.clip(baked["stain.mask"] + 0.05, 0.0, 1.0)
     raised = {**baked, "stain.mask": stain}
