@@ -177,7 +177,8 @@ def averaging_covariance(iterates, gradients, u, h, inverse) -> np.ndarray:
 
 def transform_jacobian(free, u) -> np.ndarray:
     """d(physical values)/du of the material's part `u` of a solver vector (its transforms'
-    derivatives: diagonal per component, zero at a clipped bound)."""
+    derivatives: diagonal per component, zero past the coordinate's clip; a `clipped_sigmoid`'s
+    passes straight through its clip at the bounds, as `to_physical` gives it under JAX)."""
     u = jnp.asarray(u, jnp.float32)
     return np.asarray(jax.jacfwd(lambda v: to_physical(free, v, jnp))(u), np.float64)
 
