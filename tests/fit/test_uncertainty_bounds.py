@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fit.material import Free, at_bounds, bound_note
-from fit.solvers.uncertainty import inverse_determined
+from fit.material import Free, at_bounds, bound_note, to_physical
+from fit.solvers.uncertainty import inverse_determined, transform_jacobian, transform_slope
 from materials.params import IOR, PIGMENT, ROUGHNESS, SCALE
 
 
@@ -74,3 +74,25 @@ def test_values_at_a_bound_are_named_per_component():
     assert "local minimum" in note and "--starts 4" in note
     assert "more starts" in bound_note(found[1], starts=4)
     assert at_bounds(free[:3], {**values, "glaze.pigment": [0.3] * 3, "glaze.ior": 1.5}) == []
+
+
+def test_transform_derivatives_are_the_transforms_slopes():
+    """`transform_jacobian` is diagonal with `transform_slope` on it, both the central
+    differences of `to_physical` (a sigmoid, a log-sigmoid, an RGB colour); free parameters
+    sized alike but declared otherwise (ior for alpha) get their own slopes, not another's."""
+    u = np.asarray([0.3, -1.2, 0.8, 0.4, 1.1, -0.5], np.float32)
+    eps = 1e-3
+    for free in (
+        [*_free(PIGMENT, ROUGHNESS, IOR), Free("lights.scale", None, SCALE)],
+        [*_free(PIGMENT, IOR, ROUGHNESS), Free("lights.scale", None, SCALE)],
+    ):
+        u64 = u.astype(np.float64)
+        numeric = np.asarray(
+            [
+                (to_physical(free, u64 + eps * e) - to_physical(free, u64 - eps * e)) / (2 * eps)
+                for e in np.eye(len(u))
+            ]
+        ).T
+        jacobian = transform_jacobian(free, u)
+        np.testing.assert_allclose(jacobian, numeric, rtol=1e-3, atol=1e-6)
+        np.testing.assert_allclose(transform_slope(free, u), np.diag(numeric), rtol=1e-3)
