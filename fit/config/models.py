@@ -142,8 +142,9 @@ class FitSettings(StrictModel):
     steps holding the mask thresholds when any is free)."""
     quality: Literal[QUALITIES] = "default"
     """Trade time for accuracy: draft halves every phase's steps (and step limits), fits the
-    full-resolution phases at half resolution (where the views keep 48 pixels a side) and
-    averages to a 5 % Monte Carlo sd, best doubles the steps (`schedule.at_quality`)."""
+    full-resolution phases at half resolution (where the views keep 48 pixels a side), halves
+    the samples of every phase but the last (for a material of one layer) and averages to a 5 %
+    Monte Carlo sd, best doubles the steps (`schedule.at_quality`)."""
     starts: PositiveInt = 1
     """Multi-start: run the schedule from this many starts (Ray workers), keep the best."""
     start_spread: PositiveFloat = 1.5
@@ -185,12 +186,19 @@ class FitConfig:
     def phases(self) -> list[Phase]:
         """The schedule's phases at the settings' quality preset, the views' size unknown (a
         draft halves every full-resolution phase's; a fit's own: `phases_for`)."""
-        return list(at_quality(self.settings.phases, self.settings.quality))
+        return list(at_quality(self.settings.phases, self.settings.quality, layered=self.layered))
 
     def phases_for(self, side: int) -> list[Phase]:
         """The schedule's phases at the quality preset for fitted views whose smallest side is
         `side` pixels at full resolution (`schedule.DRAFT_MIN_SIDE`)."""
-        return list(at_quality(self.settings.phases, self.settings.quality, side))
+        return list(
+            at_quality(self.settings.phases, self.settings.quality, side, layered=self.layered)
+        )
+
+    @property
+    def layered(self) -> bool:
+        """Whether the material stacks more than one layer (`schedule.at_quality`)."""
+        return len(self.material.layers) > 1
 
     def __getattr__(self, name):  # cfg.free, cfg.seed, ...: the [fit] settings
         if name in FitSettings.model_fields:

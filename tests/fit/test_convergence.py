@@ -3,6 +3,7 @@ recorded part by part."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -15,7 +16,13 @@ from fit import timing
 from fit.solvers import DEFAULT_SCHEDULE, Phase
 from fit.solvers.base import Outcome
 from fit.solvers.gn import _averaged, burn_in, settled
-from fit.solvers.schedule import DRAFT_MIN_SIDE, DRAFT_PRECISION, QUALITIES, at_quality
+from fit.solvers.schedule import (
+    DRAFT_MIN_SIDE,
+    DRAFT_PRECISION,
+    DRAFT_SAMPLES,
+    QUALITIES,
+    at_quality,
+)
 
 
 def _wandering(rng, coordinates: int, window: int, drift: float = 0.0) -> np.ndarray:
@@ -148,15 +155,20 @@ def test_an_averaged_phase_leaves_out_its_relaxation(problem, monkeypatch, burn_
 
 def test_quality_presets_change_every_phase():
     """draft: half the steps, step limits and a relaxing phase's fewest steps (rounded up), the
-    full-resolution phases at half resolution, a precise phase averaged to `DRAFT_PRECISION` at
-    least; best: twice the steps and limits; default: the phases as they are; their other
-    options kept."""
+    full-resolution phases at half resolution, every phase's samples but the last's halved, a
+    precise phase averaged to `DRAFT_PRECISION` at least; best: twice the steps and limits;
+    default: the phases as they are; their other options kept."""
     assert at_quality(DEFAULT_SCHEDULE) == DEFAULT_SCHEDULE
     draft = at_quality(DEFAULT_SCHEDULE, "draft")
     best = at_quality(DEFAULT_SCHEDULE, "best")
-    halved = {"max_steps", "precision", "relaxed_min", "relaxed_min_determined"}
-    for phase, d, b in zip(DEFAULT_SCHEDULE, draft, best, strict=True):
+    halved = {"max_steps", "precision", "relaxed_min", "relaxed_min_determined", *DRAFT_SAMPLES}
+    last = len(DEFAULT_SCHEDULE) - 1
+    for i, (phase, d, b) in enumerate(zip(DEFAULT_SCHEDULE, draft, best, strict=True)):
         assert d.steps == -(-phase.steps // 2) and b.steps == 2 * phase.steps
+        samples = {k: v for k, v in phase.model_dump().items() if k in DRAFT_SAMPLES and v}
+        drafted = {k: v for k, v in d.model_dump().items() if k in DRAFT_SAMPLES and v}
+        assert drafted == {k: v if i == last else v // 2 for k, v in samples.items()}
+        assert {k: v for k, v in b.model_dump().items() if k in samples} == samples
         assert d.downscale == (2 if phase.downscale == 1 else phase.downscale)
         assert b.downscale == phase.downscale
         limit = getattr(phase.options, "max_steps", None)
@@ -175,6 +187,7 @@ def test_quality_presets_change_every_phase():
     assert any(getattr(p.options, "max_steps", None) for p in DEFAULT_SCHEDULE)  # checked above
     assert any(getattr(p.options, "precision", 0) for p in DEFAULT_SCHEDULE)
     assert any(getattr(p.options, "relaxed", False) for p in DEFAULT_SCHEDULE)
+    assert draft[1].spp == 8 and draft[1].options.spp_limit == 32 and draft[-1].spp == 64
     loose = Phase(solver="gn", steps=8, spp=4, precision=0.4, max_steps=16)
     assert at_quality((loose,), "draft")[0].options.precision == 0.4  # it asks less already
     odd = (Phase(solver="adam", steps=1, spp=4, downscale=3, lr=0.2),)
@@ -230,6 +243,32 @@ def test_fit_quality_applies_to_a_configs_own_phases(tmp_path, shared_data):
     path.write_text(text.replace("seed = 0", 'seed = 0\nquality = "fast"'))
     with pytest.raises(InputError, match=r"fit\.quality"):
         load_fit_config(path)
+
+
+def test_a_layered_materials_draft_keeps_its_samples(tmp_path, shared_data):
+    """A draft of the cup (layers sharing each pixel's samples by Russian roulette) keeps every
+    phase's samples and halves its steps; a draft of the one-layer sphere halves the samples of
+    every phase but the last (the schedule alone knows no material: it halves)."""
+    from test_fitconfig import ROOT
+
+    from fit.config import load_fit_config
+
+    def samples(phase):
+        return {k: v for k, v in phase.model_dump().items() if k in DRAFT_SAMPLES}
+
+    cup = load_fit_config(ROOT / "configs" / "cup-fit.toml")
+    cup = dataclasses.replace(cup, settings=cup.settings.model_copy(update={"quality": "draft"}))
+    assert cup.layered
+    for phase, d in zip(cup.settings.phases, cup.phases_for(56), strict=True):
+        assert samples(d) == samples(phase) and d.steps == -(-phase.steps // 2)
+    text = (ROOT / "configs" / "peer-sphere.toml").read_text()
+    path = tmp_path / "fit.toml"
+    text = text.replace('"../../shared/data', f'"{shared_data}')
+    path.write_text(text.replace("seed = 0", 'seed = 0\nquality = "draft"'))
+    sphere = load_fit_config(path)
+    assert not sphere.layered
+    assert [p.spp for p in sphere.phases_for(120)] == [4, 8, 64]
+    assert at_quality(DEFAULT_SCHEDULE, "draft") == at_quality(DEFAULT_SCHEDULE, "draft", 120)
 
 
 def test_timing_records_parts_only_inside_a_recording():
