@@ -196,21 +196,22 @@ def _transform_derivatives(free) -> tuple[Callable, Callable]:
     op, the two took 4-7 ms a call on the Cycles sphere's six components, and a `gn` phase
     asks for them at every noise and precision check."""
     key = tuple((f.spec, f.size) for f in free)
-    if key not in _DERIVATIVES:
+    if key not in _derivatives:
         free = list(free)
 
         def physical(v):
             return to_physical(free, v, jnp)
 
-        _DERIVATIVES[key] = (
+        _derivatives[key] = (
             jax.jit(jax.jacfwd(physical)),
             jax.jit(lambda v: jax.jvp(physical, (v,), (jnp.ones_like(v),))[1]),
         )
-    return _DERIVATIVES[key]
+    return _derivatives[key]
 
 
-#: `_transform_derivatives`' jitted functions by the free parameters' declarations and sizes.
-_DERIVATIVES: dict[tuple, tuple[Callable, Callable]] = {}
+#: `_transform_derivatives`' jitted functions by the free parameters' declarations and sizes (a
+#: cache, named as none of the constants that `fit.bench.constants_digest` reads).
+_derivatives: dict[tuple, tuple[Callable, Callable]] = {}
 
 
 def linearised(
