@@ -262,9 +262,10 @@ def at_quality(
         limit = fields.get("max_steps")
         if quality == "draft":
             fields["steps"] = max(1, -(-phase.steps // 2))
-            for key in DRAFT_SAMPLES if i < len(phases) - 1 and not layered else ():
-                if isinstance(fields.get(key), int):
-                    fields[key] = max(1, fields[key] // 2)
+            if i < len(phases) - 1 and not layered:
+                for key in DRAFT_SAMPLES:  # `primal_spp` may be "auto": left as it is
+                    if isinstance(fields.get(key), int):
+                        fields[key] = max(1, fields[key] // 2)
             if halve and phase.downscale == 1:
                 fields["downscale"] = 2
             if limit:
